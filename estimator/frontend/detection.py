@@ -1,0 +1,53 @@
+"""The per-frame measurement every front end produces: one detected object instance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class Detection:
+    """One object instance detected in one image.
+
+    Attributes:
+        obj_id: BOP object id of the detected class.
+        bbox_xywh: (4,) float, the instance's box in pixels: x, y of the top-left corner, width,
+            height (BOP's ``bbox_visib`` convention).
+        center_uv: (2,) float, pixel coordinates of the projected model origin ``u_k``.
+        center_cov: (2, 2) float, covariance of ``center_uv`` in pixels^2, symmetric positive
+            definite.
+        mask: (H, W) bool visible mask of the instance, or None when the front end has none.
+        score: confidence of the detection in [0, 1].
+    """
+
+    obj_id: int
+    bbox_xywh: np.ndarray  # (4,)
+    center_uv: np.ndarray  # (2,)
+    center_cov: np.ndarray  # (2, 2)
+    mask: np.ndarray | None  # (H, W) bool
+    score: float = 1.0
+
+    def __post_init__(self) -> None:
+        bbox = np.asarray(self.bbox_xywh, dtype=np.float64).reshape(4)
+        uv = np.asarray(self.center_uv, dtype=np.float64).reshape(2)
+        cov = np.asarray(self.center_cov, dtype=np.float64).reshape(2, 2)
+        if not (np.all(np.isfinite(bbox)) and np.all(np.isfinite(uv)) and np.all(np.isfinite(cov))):
+            raise ValueError("Detection: bbox_xywh, center_uv and center_cov must be finite")
+        if bbox[2] <= 0 or bbox[3] <= 0:
+            raise ValueError(f"Detection: bbox width and height must be positive, got {bbox}")
+        if not np.allclose(cov, cov.T, atol=1e-9 * max(1.0, float(np.abs(cov).max()))):
+            raise ValueError("Detection: center_cov must be symmetric")
+        if np.linalg.eigvalsh(cov).min() <= 0:
+            raise ValueError("Detection: center_cov must be positive definite")
+        if self.mask is not None and (self.mask.ndim != 2 or self.mask.dtype != bool):
+            raise ValueError("Detection: mask must be a 2D bool array")
+        object.__setattr__(self, "bbox_xywh", bbox)
+        object.__setattr__(self, "center_uv", uv)
+        object.__setattr__(self, "center_cov", cov)
+
+    @property
+    def bbox_diagonal(self) -> float:
+        """Length of the bbox diagonal in pixels."""
+        return float(np.hypot(self.bbox_xywh[2], self.bbox_xywh[3]))
