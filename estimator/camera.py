@@ -118,7 +118,10 @@ class Camera:
         flat = uv.reshape(-1, 1, 2)
         # OpenCV's iterative solver; enough iterations to converge for realistic lenses.
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        und = cv2.undistortPointsIter(flat, self.K, self.dist, None, self.K, criteria)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+            und = cv2.undistortPointsIter(flat, self.K, self.dist, None, self.K, criteria)
+        else:  # OpenCV 5 folded the criteria into undistortPoints
+            und = cv2.undistortPoints(flat, self.K, self.dist, None, self.K, criteria=criteria)
         return und.reshape(uv.shape)
 
     def back_project(self, uv: np.ndarray, depth: np.ndarray | float = 1.0) -> np.ndarray:

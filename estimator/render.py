@@ -106,7 +106,7 @@ def random_lighting(seed: int) -> Lighting:
     lights = []
     for i in range(int(rng.integers(1, 3))):
         az = rng.uniform(0, 2 * np.pi)
-        el = rng.uniform(np.deg2rad(35), np.deg2rad(85))
+        el = rng.uniform(np.deg2rad(50), np.deg2rad(88))
         direction = (np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el))
         strength = rng.uniform(0.7, 1.1) * (1.0 if i == 0 else 0.5)
         color = strength * rng.uniform(0.92, 1.0, size=3)
@@ -238,10 +238,13 @@ class Renderer:
             instance[hit] = self.ids[mesh_idx]
             depth[hit] = t / norm[hit, 0]  # z of the hit in the camera frame
             points = origin + dirs[hit] * t[:, None]
-            bary = trimesh.triangles.points_to_barycentric(self.triangles[tri], points)
-            n = np.einsum("ij,ijk->ik", bary, self.corner_normals[tri])
-            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
             geo = self.face_normals[tri]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bary = trimesh.triangles.points_to_barycentric(self.triangles[tri], points)
+                n = np.einsum("ij,ijk->ik", bary, self.corner_normals[tri])
+                n /= np.linalg.norm(n, axis=1, keepdims=True)
+            bad = ~np.all(np.isfinite(n), axis=1)  # degenerate (zero-area) triangles
+            n[bad] = geo[bad]
             view = -dirs[hit]
             flip = np.einsum("ij,ij->i", geo, view) < 0
             n[flip] *= -1

@@ -148,7 +148,7 @@ def detect_symmetries(
     surface = _SurfaceDistance(mesh, n_dense, seed)
     test_pts, _ = trimesh.sample.sample_surface(mesh, n_test, seed=seed + 1)
     test_pts = np.asarray(test_pts)
-    center = surface.points.mean(axis=0)
+    center, second = _surface_moments(mesh)
     tol = tol_frac * diameter
 
     def score(axis: np.ndarray, angle: float) -> float:
@@ -156,8 +156,7 @@ def detect_symmetries(
         moved = test_pts @ T[:3, :3].T + T[:3, 3]
         return float(np.percentile(surface(moved, cap=1.5 * tol), 95)) / diameter
 
-    centred = surface.points - center
-    moments, vecs = np.linalg.eigh(centred.T @ centred / len(centred))
+    moments, vecs = np.linalg.eigh(second)
     eig_axes = [_canonical_axis(vecs[:, i]) for i in range(3)]
 
     rot_axes: list[SymmetryAxis] = []
@@ -203,6 +202,20 @@ def detect_symmetries(
         generators = [g for g in generators if abs(np.dot(_rotation_axis(g), cont_axis)) < 0.05][:1]
     discrete = _group_closure(generators, scale=diameter)
     return SymmetryReport(discrete=discrete, continuous=continuous, axes=tuple(axes))
+
+
+def _surface_moments(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """Exact area-weighted centroid (3,) and central second moment (3, 3) of the surface."""
+    tris = np.asarray(mesh.triangles, dtype=np.float64)  # (F, 3, 3)
+    areas = np.asarray(mesh.area_faces, dtype=np.float64)
+    total = areas.sum()
+    centroid = (areas[:, None] * tris.mean(axis=1)).sum(axis=0) / total
+    rel = tris - centroid
+    s = rel.sum(axis=1)
+    # Integral of p p^T over a triangle: A/12 * (sum_i v_i v_i^T + s s^T), s = sum_i v_i.
+    outer = np.einsum("fij,fik->fjk", rel, rel) + np.einsum("fj,fk->fjk", s, s)
+    second = (areas[:, None, None] * outer).sum(axis=0) / (12.0 * total)
+    return centroid, second
 
 
 def _axis_order(score_at, tol_frac: float) -> tuple[int, float] | None:

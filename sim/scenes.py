@@ -34,7 +34,7 @@ class BinSpec:
     """Inner floor size (x, y), wall height and thickness, metres."""
 
     size: tuple[float, float] = (0.36, 0.28)
-    wall_height: float = 0.11
+    wall_height: float = 0.08
     wall_thickness: float = 0.008
 
 

@@ -1,0 +1,198 @@
+"""The ``posefuse`` command line: thin wrappers over the packages, one error message per mistake."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from estimator.errors import PosefuseError
+
+# The procedural catalog committed with the project (found beside the packages in a checkout).
+DEFAULT_CATALOG = str(Path(__file__).resolve().parents[1] / "catalogs" / "robi_like")
+
+
+def _cmd_catalog(args: argparse.Namespace) -> int:
+    from estimator.objects import Catalog, load_mesh, make_model, write_catalog
+
+    if args.mesh:
+        models = []
+        for k, path in enumerate(args.mesh):
+            name = Path(path).stem
+            models.append(make_model(k + 1, name, load_mesh(path, units=args.units)))
+        catalog = Catalog(models)
+    else:
+        from sim.parts import robi_like_catalog
+
+        catalog = robi_like_catalog()
+    write_catalog(Path(args.out), catalog)
+    print(f"wrote {len(catalog)} objects to {args.out}")
+    print(_catalog_table(catalog))
+    return 0
+
+
+def _catalog_table(catalog) -> str:
+    rows = ["| obj_id | name | diameter (mm) | symmetries |", "|---|---|---|---|"]
+    for obj_id, model in catalog.items():
+        rows.append(
+            f"| {obj_id} | {model.name} | {model.diameter * 1000:.1f} | {model.describe_symmetries()} |"
+        )
+    return "\n".join(rows)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from estimator.objects import load_catalog
+    from sim.scenes import INTRINSICS, SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    catalog = load_catalog(args.catalog)
+    if args.intrinsics not in INTRINSICS:
+        raise PosefuseError(f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}")
+    if args.scenes < 1 or args.views < 1:
+        raise PosefuseError("--scenes and --views must be at least 1")
+    lo, hi = args.instances
+    if not 1 <= lo <= hi:
+        raise PosefuseError("--instances needs MIN MAX with 1 <= MIN <= MAX")
+    obj_ids = tuple(args.obj_ids) if args.obj_ids else None
+    for obj_id in obj_ids or ():
+        catalog[obj_id]  # raises a CatalogError naming the catalog
+    config = SynthConfig(
+        n_scenes=args.scenes,
+        seed=args.seed,
+        split=args.split,
+        first_scene_id=args.first_scene,
+        camera=INTRINSICS[args.intrinsics],
+        scene=SceneSpec(n_instances=(lo, hi), n_views=args.views),
+        obj_ids=obj_ids,
+    )
+    start = time.perf_counter()
+    generate_dataset(catalog, args.out, config, show_progress=not args.quiet)
+    elapsed = time.perf_counter() - start
+    print(f"wrote {args.scenes} scenes x {args.views} views to {args.out} in {elapsed:.1f} s")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.evaluation import evaluate, read_results
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    results = read_results(args.results)
+    report = evaluate(dataset, results, threshold=args.threshold, min_visib=args.min_visib,
+                      metric=args.metric)
+    print(report.to_markdown())
+    if args.json:
+        Path(args.json).write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _cmd_overlay(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from sim.overlay import write_gt_overlay
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    write_gt_overlay(dataset, args.scene, args.im, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_quickstart(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
+    from estimator.objects import load_catalog
+    from sim.overlay import write_gt_overlay
+    from sim.scenes import SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    out = Path(args.out)
+    catalog = load_catalog(args.catalog)
+    print(f"1/3 rendering 1 bin scene x 8 views of {len(catalog)} parts into {out}")
+    generate_dataset(catalog, out, SynthConfig(n_scenes=1, seed=args.seed, scene=SceneSpec(n_views=8)))
+    dataset = load_dataset(out)
+    overlay = out / "overlay_000000_000000.png"
+    write_gt_overlay(dataset, 0, 0, overlay)
+    print(f"2/3 ground-truth overlay of the first view: {overlay}")
+    results_path = out / "results_gt.csv"
+    write_results(results_path, ground_truth_results(dataset))
+    report = evaluate(dataset, read_results(results_path))
+    print("3/3 ADD(-S)-0.1d of the ground-truth poses read back from "
+          f"{results_path} (a check of the data path; the estimator is next):")
+    print(report.to_markdown())
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="posefuse",
+        description="Multi-view 6D pose estimation of textureless, shiny parts from RGB frames.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("catalog", help="write a BOP object catalog (procedural parts or your meshes)")
+    p.add_argument("--out", required=True, help="output folder (models/ of a BOP dataset)")
+    p.add_argument("--mesh", action="append", help="a mesh file (STL/PLY/OBJ); repeat for more")
+    p.add_argument("--units", default="mm", choices=["mm", "cm", "m"], help="units of --mesh files")
+    p.set_defaults(func=_cmd_catalog)
+
+    p = sub.add_parser("synth", help="render a BOP multi-view bin-picking dataset")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
+    p.add_argument("--out", required=True, help="dataset folder to write")
+    p.add_argument("--scenes", type=int, default=2)
+    p.add_argument("--views", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--split", default="test")
+    p.add_argument("--first-scene", type=int, default=0)
+    p.add_argument("--instances", type=int, nargs=2, default=(5, 15), metavar=("MIN", "MAX"))
+    p.add_argument("--intrinsics", default="realsense", help="realsense, realsense-640 or ensenso")
+    p.add_argument("--obj-ids", type=int, nargs="+", help="only these objects of the catalog")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser("eval", help="score a BOP results CSV: ADD(-S) detection rate per object")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--results", required=True, help="CSV: scene_id,im_id,obj_id,score,R,t,time")
+    p.add_argument("--split", default="test")
+    p.add_argument("--threshold", type=float, default=0.1, help="fraction of the diameter")
+    p.add_argument("--min-visib", type=float, default=0.75)
+    p.add_argument("--metric", default="adds", choices=["adds", "mssd"])
+    p.add_argument("--json", help="also write the report as JSON here")
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("overlay", help="draw the ground truth of one view over its image")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--scene", type=int, default=0)
+    p.add_argument("--im", type=int, default=0)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_overlay)
+
+    p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG)
+    p.add_argument("--out", default="data/quickstart")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_quickstart)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except PosefuseError as exc:
+        print(f"posefuse {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # unreadable/unwritable paths: name the file, no traceback
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"posefuse {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"posefuse {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,79 @@
+"""Pictures of a BOP view with poses drawn over it: visible-mask outlines, model axes, labels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from estimator.camera import Camera
+
+
+def _colour(k: int) -> tuple[int, int, int]:
+    hue = (k * 47) % 180
+    hsv = np.uint8([[[hue, 220, 255]]])
+    b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
+    return int(b), int(g), int(r)
+
+
+def draw_pose(
+    image_bgr: np.ndarray,
+    camera: Camera,
+    T_cam_obj: np.ndarray,
+    points_obj: np.ndarray,
+    axis_length: float,
+    colour: tuple[int, int, int],
+    label: str | None = None,
+) -> None:
+    """Draw projected model points, the object's axes (x red, y green, z blue) and a label.
+
+    Args:
+        image_bgr: (H, W, 3) uint8, drawn on in place.
+        T_cam_obj: (4, 4) metres. points_obj: (N, 3) model surface samples, metres.
+    """
+    pts_cam = points_obj @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    front = pts_cam[:, 2] > 1e-3
+    uv = camera.project(pts_cam[front])
+    h, w = image_bgr.shape[:2]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    for u, v in uv[inside].astype(int):
+        image_bgr[v, u] = colour
+    origin = T_cam_obj[:3, 3]
+    if origin[2] <= 1e-3:
+        return
+    axes = origin[:, None] + T_cam_obj[:3, :3] * axis_length  # (3, 3): one axis tip per column
+    o = camera.project(origin)
+    for k, c in enumerate(((0, 0, 255), (0, 200, 0), (255, 80, 0))):
+        tip = camera.project(axes[:, k])
+        cv2.line(image_bgr, tuple(np.round(o).astype(int)), tuple(np.round(tip).astype(int)), c, 2,
+                 cv2.LINE_AA)
+    cv2.circle(image_bgr, tuple(np.round(o).astype(int)), 3, (255, 255, 255), -1, cv2.LINE_AA)
+    if label:
+        cv2.putText(image_bgr, label, tuple(np.round(o).astype(int) + [6, -6]),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def gt_overlay(dataset, scene_id: int, im_id: int) -> np.ndarray:
+    """(H, W, 3) BGR image of one view with every ground-truth instance drawn."""
+    scene = dataset.scene(scene_id)
+    view = scene.view(im_id)
+    image = cv2.cvtColor(scene.load_rgb(im_id), cv2.COLOR_RGB2BGR)
+    for gt in view.gts:
+        colour = _colour(gt.gt_idx)
+        mask = scene.load_mask_visib(im_id, gt.gt_idx).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        cv2.drawContours(image, contours, -1, colour, 1, cv2.LINE_AA)
+        if gt.visib_fract <= 0:
+            continue
+        model = dataset.catalog[gt.obj_id]
+        draw_pose(image, view.camera, gt.T_cam_obj, model.points[::4], model.diameter * 0.35,
+                  colour, f"{model.name} {gt.visib_fract:.2f}")
+    return image
+
+
+def write_gt_overlay(dataset, scene_id: int, im_id: int, out: str | Path) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), gt_overlay(dataset, scene_id, im_id))
+    return out

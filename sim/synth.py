@@ -1,0 +1,88 @@
+"""``posefuse synth``: render multi-view bin scenes of a catalog into a BOP dataset."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from estimator.camera import Camera
+from estimator.geometry import invert
+from estimator.objects import Catalog
+from estimator.render import Renderer
+from sim.bop_writer import SceneWriter, write_dataset_header
+from sim.scenes import REALSENSE_1280x720, Scene, SceneSpec, make_scene
+from sim.sensor import SensorModel, apply_depth, apply_rgb
+
+BIN_ID = 10_000  # instance id of the bin in renders (parts are 0..n-1)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    n_scenes: int = 2
+    seed: int = 0
+    split: str = "test"
+    first_scene_id: int = 0
+    camera: Camera = REALSENSE_1280x720
+    scene: SceneSpec = SceneSpec()
+    sensor: SensorModel = SensorModel()
+    obj_ids: tuple[int, ...] | None = None
+
+
+def scene_seed(seed: int, scene_id: int) -> int:
+    """The seed of one scene: independent of how many scenes are generated."""
+    return int(np.random.SeedSequence([seed, scene_id]).generate_state(1)[0])
+
+
+def render_scene_views(
+    catalog: Catalog, scene: Scene, writer: SceneWriter, sensor: SensorModel, seed: int,
+    progress: Callable[[], None] | None = None,
+) -> None:
+    """Render every view of ``scene`` and hand it to ``writer``."""
+    materials = [_part_material(catalog, inst.obj_id) for inst in scene.instances]
+    meshes = [catalog[inst.obj_id].mesh for inst in scene.instances] + [scene.bin_mesh]
+    poses = [inst.T_world_obj for inst in scene.instances] + [np.eye(4)]
+    ids = list(range(len(scene.instances))) + [BIN_ID]
+    renderer = Renderer(meshes, poses, ids, materials + [scene.bin_material])
+    rng = np.random.default_rng(seed)
+    for im_id, T_world_cam in enumerate(scene.T_world_cams):
+        res = renderer.render(scene.camera, T_world_cam, scene.lighting)
+        metal = (res.instance >= 0) & (res.instance != BIN_ID)
+        rgb = apply_rgb(res.image, sensor, rng)
+        depth = apply_depth(res.depth, res.image, res.normals, metal, sensor, rng)
+        T_cam_world = invert(T_world_cam)
+        gts, visib, full = [], [], []
+        for k, inst in enumerate(scene.instances):
+            gts.append((inst.obj_id, T_cam_world @ inst.T_world_obj))
+            visib.append(res.instance == k)
+            full.append(renderer.render_mask(scene.camera, T_world_cam, k))
+        writer.add_view(im_id, scene.camera, T_cam_world, rgb, depth, gts, visib, full)
+        if progress:
+            progress()
+
+
+def _part_material(catalog: Catalog, obj_id: int):
+    from estimator.render import CHROME, METAL
+
+    # Screws are chromed in ROBI; the other parts are bare machined metal.
+    return CHROME if "screw" in catalog[obj_id].name else METAL
+
+
+def generate_dataset(catalog: Catalog, out: str | Path, config: SynthConfig, show_progress: bool = True) -> Path:
+    """Write ``config.n_scenes`` scenes of ``config.scene.n_views`` views to ``out`` (BOP)."""
+    out = Path(out)
+    write_dataset_header(out, config.camera, catalog)
+    total = config.n_scenes * config.scene.n_views
+    with tqdm(total=total, desc="synth", unit="view", disable=not show_progress) as bar:
+        for k in range(config.n_scenes):
+            scene_id = config.first_scene_id + k
+            seed = scene_seed(config.seed, scene_id)
+            obj_ids = list(config.obj_ids) if config.obj_ids else None
+            scene = make_scene(catalog, config.scene, seed, config.camera, obj_ids)
+            writer = SceneWriter(out / config.split, scene_id)
+            render_scene_views(catalog, scene, writer, config.sensor, seed + 1, bar.update)
+            writer.close()
+    return out
