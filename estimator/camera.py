@@ -44,10 +44,14 @@ class Camera:
             raise ValueError(f"Camera: K must be [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx,fy>0: {K}")
         dist = np.zeros(5) if self.dist is None else np.asarray(self.dist, dtype=np.float64)
         if dist.ndim != 1 or dist.size > 5 or not np.all(np.isfinite(dist)):
-            raise ValueError(f"Camera: dist must hold at most 5 finite plumb_bob coefficients, got {dist}")
+            raise ValueError(
+                f"Camera: dist must hold at most 5 finite plumb_bob coefficients, got {dist}"
+            )
         dist = np.concatenate([dist, np.zeros(5 - dist.size)])
         if int(self.width) <= 0 or int(self.height) <= 0:
-            raise ValueError(f"Camera: width and height must be positive, got {self.width}x{self.height}")
+            raise ValueError(
+                f"Camera: width and height must be positive, got {self.width}x{self.height}"
+            )
         K.setflags(write=False)
         dist.setflags(write=False)
         object.__setattr__(self, "K", K)
@@ -134,7 +138,7 @@ class Camera:
             pts_cam: (..., 3); with depth 1 these are the viewing rays scaled to z = 1.
         """
         und = self.undistort_points(uv)
-        x = (und[..., 0] - self.K[0, 2] - self.K[0, 1] * (und[..., 1] - self.K[1, 2]) / self.K[1, 1])
+        x = und[..., 0] - self.K[0, 2] - self.K[0, 1] * (und[..., 1] - self.K[1, 2]) / self.K[1, 1]
         x = x / self.K[0, 0]
         y = (und[..., 1] - self.K[1, 2]) / self.K[1, 1]
         ray = np.stack([x, y, np.ones_like(x)], axis=-1)

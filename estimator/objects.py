@@ -103,7 +103,9 @@ def mesh_diameter(mesh: trimesh.Trimesh) -> float:
     return float(pdist(pts).max())
 
 
-def sample_model_points(mesh: trimesh.Trimesh, n: int = N_MODEL_POINTS, seed: int = 0) -> np.ndarray:
+def sample_model_points(
+    mesh: trimesh.Trimesh, n: int = N_MODEL_POINTS, seed: int = 0
+) -> np.ndarray:
     """(n, 3) uniform surface samples with a fixed seed."""
     pts, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
     return np.asarray(pts, dtype=np.float64)
@@ -142,7 +144,9 @@ def make_model(
 class Catalog(Mapping[int, ObjectModel]):
     """The objects of one BOP catalog, by obj_id."""
 
-    def __init__(self, models: Mapping[int, ObjectModel] | list[ObjectModel], root: Path | None = None):
+    def __init__(
+        self, models: Mapping[int, ObjectModel] | list[ObjectModel], root: Path | None = None
+    ):
         items = models.values() if isinstance(models, Mapping) else models
         self._models = {m.obj_id: m for m in sorted(items, key=lambda m: m.obj_id)}
         self.root = root
@@ -152,7 +156,9 @@ class Catalog(Mapping[int, ObjectModel]):
             return self._models[obj_id]
         except KeyError:
             where = f" in {self.root}" if self.root else ""
-            raise CatalogError(self.root or "catalog", f"no object with obj_id {obj_id}{where}") from None
+            raise CatalogError(
+                self.root or "catalog", f"no object with obj_id {obj_id}{where}"
+            ) from None
 
     def __iter__(self) -> Iterator[int]:
         return iter(self._models)
@@ -224,7 +230,9 @@ def _parse_symmetries(entry: dict, where: str, info_path: Path):
     for i, sym in enumerate(entry.get("symmetries_discrete", [])):
         arr = np.asarray(sym, dtype=np.float64)
         if arr.size != 16 or not np.all(np.isfinite(arr)):
-            raise CatalogError(info_path, f"{where}: symmetries_discrete[{i}] is not 16 finite numbers")
+            raise CatalogError(
+                info_path, f"{where}: symmetries_discrete[{i}] is not 16 finite numbers"
+            )
         T = arr.reshape(4, 4).copy()
         R = T[:3, :3]
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:

@@ -52,10 +52,12 @@ class Material:
 
 
 METAL = Material()
-CHROME = Material(color=(0.8, 0.8, 0.82), diffuse=0.08, specular=1.2, shininess=120.0,
-                  reflect=0.85, fresnel0=0.7)
-MATTE = Material(color=(0.5, 0.5, 0.5), diffuse=0.9, specular=0.05, shininess=8.0,
-                 reflect=0.0, fresnel0=0.04)
+CHROME = Material(
+    color=(0.8, 0.8, 0.82), diffuse=0.08, specular=1.2, shininess=120.0, reflect=0.85, fresnel0=0.7
+)
+MATTE = Material(
+    color=(0.5, 0.5, 0.5), diffuse=0.9, specular=0.05, shininess=8.0, reflect=0.0, fresnel0=0.04
+)
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,9 @@ class Lighting:
     background: tuple[float, float, float] = (0.05, 0.05, 0.05)
 
 
-def make_environment(seed: int, width: int = 256, height: int = 128, n_panels: int = 4) -> np.ndarray:
+def make_environment(
+    seed: int, width: int = 256, height: int = 128, n_panels: int = 4
+) -> np.ndarray:
     """A procedural room: dim walls, a brighter ceiling and bright rectangular light panels.
 
     Returns (height, width, 3) float32 linear radiance, equirectangular: column = azimuth
@@ -119,7 +123,10 @@ def random_lighting(seed: int) -> Lighting:
 
 
 DEFAULT_LIGHTING = Lighting(
-    lights=(DirectionalLight((0.3, -0.2, 0.93)), DirectionalLight((-0.5, 0.4, 0.77), (0.4, 0.4, 0.4))),
+    lights=(
+        DirectionalLight((0.3, -0.2, 0.93)),
+        DirectionalLight((-0.5, 0.4, 0.77), (0.4, 0.4, 0.4)),
+    ),
     environment=make_environment(0),
 )
 
@@ -191,8 +198,11 @@ class Renderer:
         self.triangles = np.concatenate(tris)  # (F, 3, 3)
         self.corner_normals = np.concatenate(corner_normals)  # (F, 3, 3)
         self.face_mesh = np.concatenate(face_mesh)  # (F,)
-        scene = trimesh.Trimesh(self.triangles.reshape(-1, 3),
-                                np.arange(len(self.triangles) * 3).reshape(-1, 3), process=False)
+        scene = trimesh.Trimesh(
+            self.triangles.reshape(-1, 3),
+            np.arange(len(self.triangles) * 3).reshape(-1, 3),
+            process=False,
+        )
         self.face_normals = np.asarray(scene.face_normals)
         self._intersector = RayMeshIntersector(scene)
         self._single: dict[int, RayMeshIntersector] = {}
@@ -200,8 +210,14 @@ class Renderer:
         self.materials = materials
 
     # ------------------------------------------------------------------ casting
-    def _cast(self, origin: np.ndarray, dirs: np.ndarray, intersector=None, triangles=None,
-              face_normals=None):
+    def _cast(
+        self,
+        origin: np.ndarray,
+        dirs: np.ndarray,
+        intersector=None,
+        triangles=None,
+        face_normals=None,
+    ):
         intersector = intersector or self._intersector
         triangles = self.triangles if triangles is None else triangles
         face_normals = self.face_normals if face_normals is None else face_normals
@@ -211,7 +227,9 @@ class Renderer:
         tri = tri[hit]
         fn = face_normals[tri]
         d = dirs[hit]
-        t = np.einsum("ij,ij->i", triangles[tri, 0] - origins[hit], fn) / np.einsum("ij,ij->i", d, fn)
+        t = np.einsum("ij,ij->i", triangles[tri, 0] - origins[hit], fn) / np.einsum(
+            "ij,ij->i", d, fn
+        )
         return hit, tri, t
 
     def render(
@@ -263,7 +281,11 @@ class Renderer:
         out = np.zeros((len(points), 3), np.float32)
         n_dot_v = np.clip(np.einsum("ij,ij->i", n, view), 0.0, 1.0)
         reflected = 2 * n_dot_v[:, None] * n - view
-        env = _sample_environment(lighting.environment, reflected) if lighting.environment is not None else None
+        env = (
+            _sample_environment(lighting.environment, reflected)
+            if lighting.environment is not None
+            else None
+        )
         visibility = []
         for light in lighting.lights:
             ldir = np.asarray(light.direction, np.float64)
@@ -326,7 +348,9 @@ class Renderer:
             return mask
         if mesh_index not in self._single:
             self._single[mesh_index] = RayMeshIntersector(posed)
-        rays = pixel_rays(camera).reshape(camera.height, camera.width, 3)[v0:v1, u0:u1].reshape(-1, 3)
+        rays = (
+            pixel_rays(camera).reshape(camera.height, camera.width, 3)[v0:v1, u0:u1].reshape(-1, 3)
+        )
         dirs = rays @ T_world_cam[:3, :3].T
         hit = self._single[mesh_index].intersects_any(
             np.ascontiguousarray(np.broadcast_to(T_world_cam[:3, 3], dirs.shape)), dirs

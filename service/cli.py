@@ -36,9 +36,9 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
 def _catalog_table(catalog) -> str:
     rows = ["| obj_id | name | diameter (mm) | symmetries |", "|---|---|---|---|"]
     for obj_id, model in catalog.items():
-        rows.append(
-            f"| {obj_id} | {model.name} | {model.diameter * 1000:.1f} | {model.describe_symmetries()} |"
-        )
+        diameter_mm = model.diameter * 1000
+        symmetries = model.describe_symmetries()
+        rows.append(f"| {obj_id} | {model.name} | {diameter_mm:.1f} | {symmetries} |")
     return "\n".join(rows)
 
 
@@ -49,7 +49,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     catalog = load_catalog(args.catalog)
     if args.intrinsics not in INTRINSICS:
-        raise PosefuseError(f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}")
+        raise PosefuseError(
+            f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}"
+        )
     if args.scenes < 1 or args.views < 1:
         raise PosefuseError("--scenes and --views must be at least 1")
     lo, hi = args.instances
@@ -80,8 +82,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     dataset = load_dataset(args.dataset, split=args.split)
     results = read_results(args.results)
-    report = evaluate(dataset, results, threshold=args.threshold, min_visib=args.min_visib,
-                      metric=args.metric)
+    report = evaluate(
+        dataset, results, threshold=args.threshold, min_visib=args.min_visib, metric=args.metric
+    )
     print(report.to_markdown())
     if args.json:
         Path(args.json).write_text(json.dumps(report.to_json(), indent=2) + "\n")
@@ -91,6 +94,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_overlay(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
+
     from sim.overlay import write_gt_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)
@@ -102,6 +106,7 @@ def _cmd_overlay(args: argparse.Namespace) -> int:
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
+
     from estimator.objects import load_catalog
     from sim.overlay import write_gt_overlay
     from sim.scenes import SceneSpec
@@ -110,7 +115,9 @@ def _cmd_quickstart(args: argparse.Namespace) -> int:
     out = Path(args.out)
     catalog = load_catalog(args.catalog)
     print(f"1/3 rendering 1 bin scene x 8 views of {len(catalog)} parts into {out}")
-    generate_dataset(catalog, out, SynthConfig(n_scenes=1, seed=args.seed, scene=SceneSpec(n_views=8)))
+    generate_dataset(
+        catalog, out, SynthConfig(n_scenes=1, seed=args.seed, scene=SceneSpec(n_views=8))
+    )
     dataset = load_dataset(out)
     overlay = out / "overlay_000000_000000.png"
     write_gt_overlay(dataset, 0, 0, overlay)
@@ -118,8 +125,10 @@ def _cmd_quickstart(args: argparse.Namespace) -> int:
     results_path = out / "results_gt.csv"
     write_results(results_path, ground_truth_results(dataset))
     report = evaluate(dataset, read_results(results_path))
-    print("3/3 ADD(-S)-0.1d of the ground-truth poses read back from "
-          f"{results_path} (a check of the data path; the estimator is next):")
+    print(
+        "3/3 ADD(-S)-0.1d of the ground-truth poses read back from "
+        f"{results_path} (a check of the data path; the estimator is next):"
+    )
     print(report.to_markdown())
     return 0
 
@@ -131,7 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("catalog", help="write a BOP object catalog (procedural parts or your meshes)")
+    p = sub.add_parser(
+        "catalog", help="write a BOP object catalog (procedural parts or your meshes)"
+    )
     p.add_argument("--out", required=True, help="output folder (models/ of a BOP dataset)")
     p.add_argument("--mesh", action="append", help="a mesh file (STL/PLY/OBJ); repeat for more")
     p.add_argument("--units", default="mm", choices=["mm", "cm", "m"], help="units of --mesh files")

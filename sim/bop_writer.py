@@ -30,7 +30,12 @@ def bbox_xywh(mask: np.ndarray) -> list[int]:
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
         return [-1, -1, -1, -1]
-    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    return [
+        int(xs.min()),
+        int(ys.min()),
+        int(xs.max() - xs.min() + 1),
+        int(ys.max() - ys.min() + 1),
+    ]
 
 
 def write_dataset_header(root: str | Path, camera: Camera, catalog: Catalog) -> Path:
@@ -82,7 +87,11 @@ class SceneWriter:
             gts: per instance (obj_id, T_cam_obj (4, 4) metres), in the scene's instance order.
             masks_visib, masks_full: per instance (H, W) bool visible and unoccluded silhouettes.
         """
-        cv2.imwrite(str(self.dir / "rgb" / f"{im_id:06d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), PNG_PARAMS)
+        cv2.imwrite(
+            str(self.dir / "rgb" / f"{im_id:06d}.png"),
+            cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
+            PNG_PARAMS,
+        )
         depth_units = np.round(depth_m * 1000.0 / DEPTH_SCALE)
         depth_png = np.clip(depth_units, 0, 65535).astype(np.uint16)
         cv2.imwrite(str(self.dir / "depth" / f"{im_id:06d}.png"), depth_png, PNG_PARAMS)
@@ -102,21 +111,25 @@ class SceneWriter:
                 visib.astype(np.uint8) * 255,
                 PNG_PARAMS,
             )
-            gt_list.append({
-                "cam_R_m2c": _round(T_cam_obj[:3, :3], 12),
-                "cam_t_m2c": _round(T_cam_obj[:3, 3] * 1000.0, 9),
-                "obj_id": int(obj_id),
-            })
+            gt_list.append(
+                {
+                    "cam_R_m2c": _round(T_cam_obj[:3, :3], 12),
+                    "cam_t_m2c": _round(T_cam_obj[:3, 3] * 1000.0, 9),
+                    "obj_id": int(obj_id),
+                }
+            )
             n_all = int(full.sum())
             n_visib = int((visib & full).sum()) if n_all else int(visib.sum())
-            info_list.append({
-                "bbox_obj": bbox_xywh(full),
-                "bbox_visib": bbox_xywh(visib),
-                "px_count_all": n_all,
-                "px_count_valid": int((full & valid_depth).sum()),
-                "px_count_visib": n_visib,
-                "visib_fract": round(n_visib / n_all, 9) if n_all else 0.0,
-            })
+            info_list.append(
+                {
+                    "bbox_obj": bbox_xywh(full),
+                    "bbox_visib": bbox_xywh(visib),
+                    "px_count_all": n_all,
+                    "px_count_valid": int((full & valid_depth).sum()),
+                    "px_count_visib": n_visib,
+                    "visib_fract": round(n_visib / n_all, 9) if n_all else 0.0,
+                }
+            )
         self.scene_gt[im_id] = gt_list
         self.scene_gt_info[im_id] = info_list
 

@@ -46,12 +46,26 @@ def draw_pose(
     o = camera.project(origin)
     for k, c in enumerate(((0, 0, 255), (0, 200, 0), (255, 80, 0))):
         tip = camera.project(axes[:, k])
-        cv2.line(image_bgr, tuple(np.round(o).astype(int)), tuple(np.round(tip).astype(int)), c, 2,
-                 cv2.LINE_AA)
+        cv2.line(
+            image_bgr,
+            tuple(np.round(o).astype(int)),
+            tuple(np.round(tip).astype(int)),
+            c,
+            2,
+            cv2.LINE_AA,
+        )
     cv2.circle(image_bgr, tuple(np.round(o).astype(int)), 3, (255, 255, 255), -1, cv2.LINE_AA)
     if label:
-        cv2.putText(image_bgr, label, tuple(np.round(o).astype(int) + [6, -6]),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            image_bgr,
+            label,
+            tuple(np.round(o).astype(int) + [6, -6]),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.45,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
 
 
 def gt_overlay(dataset, scene_id: int, im_id: int) -> np.ndarray:
@@ -67,8 +81,15 @@ def gt_overlay(dataset, scene_id: int, im_id: int) -> np.ndarray:
         if gt.visib_fract <= 0:
             continue
         model = dataset.catalog[gt.obj_id]
-        draw_pose(image, view.camera, gt.T_cam_obj, model.points[::4], model.diameter * 0.35,
-                  colour, f"{model.name} {gt.visib_fract:.2f}")
+        draw_pose(
+            image,
+            view.camera,
+            gt.T_cam_obj,
+            model.points[::4],
+            model.diameter * 0.35,
+            colour,
+            f"{model.name} {gt.visib_fract:.2f}",
+        )
     return image
 
 

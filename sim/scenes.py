@@ -73,7 +73,9 @@ def bin_mesh(spec: BinSpec) -> trimesh.Trimesh:
     t, h = spec.wall_thickness, spec.wall_height
     boxes = [trimesh.creation.box([sx + 2 * t, sy + 2 * t, t], _translation(0, 0, -t / 2))]
     for sign in (-1, 1):
-        boxes.append(trimesh.creation.box([t, sy + 2 * t, h], _translation(sign * (sx + t) / 2, 0, h / 2)))
+        boxes.append(
+            trimesh.creation.box([t, sy + 2 * t, h], _translation(sign * (sx + t) / 2, 0, h / 2))
+        )
         boxes.append(trimesh.creation.box([sx, t, h], _translation(0, sign * (sy + t) / 2, h / 2)))
     return trimesh.util.concatenate(boxes)
 
@@ -84,7 +86,9 @@ def bin_texture(rng: np.random.Generator, size: int = 256) -> np.ndarray:
     noise = np.zeros((size, size))
     for octave in (4, 16, 64):
         coarse = rng.normal(size=(octave, octave))
-        noise += trimesh.util.np.kron(coarse, np.ones((size // octave, size // octave))) / octave**0.5
+        noise += (
+            trimesh.util.np.kron(coarse, np.ones((size // octave, size // octave))) / octave**0.5
+        )
     tex = base[None, None, :] * (1 + 0.25 * noise[..., None] / np.abs(noise).max())
     for _ in range(40):  # thin bright scratches
         r0, c0 = rng.integers(0, size, 2)
@@ -139,7 +143,9 @@ def _drop_distance(part: trimesh.Trimesh, pile: trimesh.Trimesh, rng: np.random.
     return dist
 
 
-def _ray_distance(intersector: RayMeshIntersector, origins: np.ndarray, direction: np.ndarray) -> float:
+def _ray_distance(
+    intersector: RayMeshIntersector, origins: np.ndarray, direction: np.ndarray
+) -> float:
     """Smallest distance along ``direction`` from any origin to the intersector's mesh."""
     dirs = np.broadcast_to(direction, origins.shape).copy()
     tri = intersector.intersects_first(origins, dirs)
@@ -177,7 +183,9 @@ def place_instances(
         room = np.array([sx, sy]) / 2 - half - 0.003
         centre_xy = rng.uniform(-np.maximum(room, 0), np.maximum(room, 0))
         start_z = pile.bounds[1, 2] + 0.02 - lo[2]
-        shift = np.array([centre_xy[0] - (lo[0] + hi[0]) / 2, centre_xy[1] - (lo[1] + hi[1]) / 2, start_z])
+        shift = np.array(
+            [centre_xy[0] - (lo[0] + hi[0]) / 2, centre_xy[1] - (lo[1] + hi[1]) / 2, start_z]
+        )
         posed.apply_translation(shift)
         drop = _drop_distance(posed, pile, rng)
         if not np.isfinite(drop):
@@ -220,14 +228,21 @@ def sample_views(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
         polar = np.deg2rad(rng.uniform(5.0, spec.max_polar_deg))
         r = rng.uniform(*spec.distance)
         target = np.array([*rng.uniform(-0.03, 0.03, 2), 0.02])
-        eye = target + r * np.array([np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.cos(polar)])
-        roll_hint = np.array([np.cos(az + np.pi + rng.normal(0, 0.3)), np.sin(az + np.pi + rng.normal(0, 0.3)), 0.0])
+        eye = target + r * np.array(
+            [np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.cos(polar)]
+        )
+        roll_hint = np.array(
+            [np.cos(az + np.pi + rng.normal(0, 0.3)), np.sin(az + np.pi + rng.normal(0, 0.3)), 0.0]
+        )
         views.append(look_at(eye, target, -roll_hint))
     return np.stack(views)
 
 
 def make_scene(
-    catalog: Catalog, spec: SceneSpec, seed: int, camera: Camera = REALSENSE_1280x720,
+    catalog: Catalog,
+    spec: SceneSpec,
+    seed: int,
+    camera: Camera = REALSENSE_1280x720,
     obj_ids: list[int] | None = None,
 ) -> Scene:
     """A random bin scene: parts, lighting, bin appearance and camera views, all from ``seed``."""
@@ -238,9 +253,16 @@ def make_scene(
     n = int(rng.integers(spec.n_instances[0], spec.n_instances[1] + 1))
     instances = place_instances([catalog[i] for i in chosen], n, spec, rng)
     texture = bin_texture(rng)
-    bin_material = Material(color=(1.0, 1.0, 1.0), diffuse=MATTE.diffuse, specular=0.15,
-                            shininess=20.0, reflect=0.03, fresnel0=0.04, texture=texture,
-                            texture_size=float(rng.uniform(0.15, 0.4)))
+    bin_material = Material(
+        color=(1.0, 1.0, 1.0),
+        diffuse=MATTE.diffuse,
+        specular=0.15,
+        shininess=20.0,
+        reflect=0.03,
+        fresnel0=0.04,
+        texture=texture,
+        texture_size=float(rng.uniform(0.15, 0.4)),
+    )
     lighting = random_lighting(int(rng.integers(2**31)))
     views = sample_views(spec, rng)
     return Scene(tuple(instances), bin_mesh(spec.bin), bin_material, lighting, camera, views)

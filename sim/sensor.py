@@ -69,7 +69,9 @@ def apply_depth(
         zmin = -cv2.dilate(-z.astype(np.float32), np.ones((3, 3), np.uint8))
         edge = (zmax - zmin) > model.depth_edge_jump
         if model.depth_edge_px > 1:
-            edge = cv2.dilate(edge.astype(np.uint8), np.ones((model.depth_edge_px,) * 2, np.uint8)) > 0
+            edge = (
+                cv2.dilate(edge.astype(np.uint8), np.ones((model.depth_edge_px,) * 2, np.uint8)) > 0
+            )
         holes |= edge
     out = np.where(valid & ~holes, noisy, 0.0)
     return out.astype(np.float32)

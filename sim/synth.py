@@ -38,7 +38,11 @@ def scene_seed(seed: int, scene_id: int) -> int:
 
 
 def render_scene_views(
-    catalog: Catalog, scene: Scene, writer: SceneWriter, sensor: SensorModel, seed: int,
+    catalog: Catalog,
+    scene: Scene,
+    writer: SceneWriter,
+    sensor: SensorModel,
+    seed: int,
     progress: Callable[[], None] | None = None,
 ) -> None:
     """Render every view of ``scene`` and hand it to ``writer``."""
@@ -71,7 +75,9 @@ def _part_material(catalog: Catalog, obj_id: int):
     return CHROME if "screw" in catalog[obj_id].name else METAL
 
 
-def generate_dataset(catalog: Catalog, out: str | Path, config: SynthConfig, show_progress: bool = True) -> Path:
+def generate_dataset(
+    catalog: Catalog, out: str | Path, config: SynthConfig, show_progress: bool = True
+) -> Path:
     """Write ``config.n_scenes`` scenes of ``config.scene.n_views`` views to ``out`` (BOP)."""
     out = Path(out)
     write_dataset_header(out, config.camera, catalog)

@@ -36,7 +36,9 @@ def test_undistort_inverts_distortion():
     cam = Camera(K, 1280, 720, DIST)
     ideal = Camera(K, 1280, 720)
     pts = np.array([[0.1, -0.05, 1.0], [-0.2, 0.15, 0.8], [0.0, 0.0, 2.0]])
-    np.testing.assert_allclose(cam.undistort_points(cam.project(pts)), ideal.project(pts), atol=1e-8)
+    np.testing.assert_allclose(
+        cam.undistort_points(cam.project(pts)), ideal.project(pts), atol=1e-8
+    )
 
 
 def test_batch_shapes():
@@ -59,20 +61,33 @@ def test_scaled_camera_maps_pixel_centres_like_resize():
     img[300:310, 600:610] = 1.0
     small = cv2.resize(img, (640, 360), interpolation=cv2.INTER_AREA)
     ys, xs = np.nonzero(small > 0)
-    centre_small = np.array([np.average(xs, weights=small[ys, xs]), np.average(ys, weights=small[ys, xs])])
-    np.testing.assert_allclose(centre_small, (np.array([604.5, 304.5]) + 0.5) * 0.5 - 0.5, atol=1e-6)
+    centre_small = np.array(
+        [np.average(xs, weights=small[ys, xs]), np.average(ys, weights=small[ys, xs])]
+    )
+    np.testing.assert_allclose(
+        centre_small, (np.array([604.5, 304.5]) + 0.5) * 0.5 - 0.5, atol=1e-6
+    )
 
 
 def test_resized_and_contains():
     cam = Camera(K, 1280, 720)
     assert cam.resized(320, 180).width == 320
-    assert cam.contains(np.array([[0, 0], [1279, 719], [-1, 5], [5, 720]])).tolist() == [True, True, False, False]
+    assert cam.contains(np.array([[0, 0], [1279, 719], [-1, 5], [5, 720]])).tolist() == [
+        True,
+        True,
+        False,
+        False,
+    ]
 
 
 @pytest.mark.parametrize(
     "bad",
-    [np.eye(2), np.array([[0.0, 0, 1], [0, 1, 1], [0, 0, 1]]), np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 2]]),
-     np.full((3, 3), np.nan)],
+    [
+        np.eye(2),
+        np.array([[0.0, 0, 1], [0, 1, 1], [0, 0, 1]]),
+        np.array([[1.0, 0, 1], [0, 1, 1], [0, 0, 2]]),
+        np.full((3, 3), np.nan),
+    ],
 )
 def test_bad_intrinsics_raise(bad):
     with pytest.raises(ValueError, match="Camera"):
