@@ -24,7 +24,7 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
             models.append(make_model(k + 1, name, load_mesh(path, units=args.units)))
         catalog = Catalog(models)
     else:
-        from sim.parts import robi_like_catalog
+        from sim.catalog import robi_like_catalog
 
         catalog = robi_like_catalog()
     write_catalog(Path(args.out), catalog)
@@ -47,7 +47,6 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from sim.scenes import INTRINSICS, SceneSpec
     from sim.synth import SynthConfig, generate_dataset
 
-    catalog = load_catalog(args.catalog)
     if args.intrinsics not in INTRINSICS:
         raise PosefuseError(
             f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}"
@@ -57,6 +56,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     lo, hi = args.instances
     if not 1 <= lo <= hi:
         raise PosefuseError("--instances needs MIN MAX with 1 <= MIN <= MAX")
+    catalog = load_catalog(args.catalog)
     obj_ids = tuple(args.obj_ids) if args.obj_ids else None
     for obj_id in obj_ids or ():
         catalog[obj_id]  # raises a CatalogError naming the catalog
