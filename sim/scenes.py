@@ -110,18 +110,20 @@ class _StablePoses:
     """Stable resting orientations of each model (cached), from trimesh's convex-hull analysis."""
 
     def __init__(self):
-        self._cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def __call__(self, model: ObjectModel) -> tuple[np.ndarray, np.ndarray]:
-        if model.obj_id not in self._cache:
+        key = model.mesh.identifier_hash  # the shape, not the obj_id: catalogs differ
+        if key not in self._cache:
             hull = model.mesh.convex_hull
-            transforms, probs = trimesh.poses.compute_stable_poses(
-                model.mesh, center_mass=hull.center_mass, n_samples=1
-            )
+            with np.errstate(divide="ignore", invalid="ignore"):  # degenerate hull faces
+                transforms, probs = trimesh.poses.compute_stable_poses(
+                    model.mesh, center_mass=hull.center_mass, n_samples=1
+                )
             keep = probs > 0.02
             transforms, probs = transforms[keep], probs[keep]
-            self._cache[model.obj_id] = (transforms, probs / probs.sum())
-        return self._cache[model.obj_id]
+            self._cache[key] = (transforms, probs / probs.sum())
+        return self._cache[key]
 
 
 _STABLE = _StablePoses()
