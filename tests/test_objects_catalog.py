@@ -1,0 +1,66 @@
+"""The symmetries listed in docs/objects.md, for the committed catalog and the real meshes."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.objects import load_catalog, load_mesh, mesh_diameter
+from estimator.symmetry import detect_symmetries
+from service.cli import DEFAULT_CATALOG
+from sim.catalog import robi_like_catalog
+
+# name -> (diameter mm, description of the detected symmetries, discrete count without identity)
+PROCEDURAL = {
+    "tube_fitting": (86.2, "2-fold about y", 1),
+    "chrome_screw": (57.1, "continuous about z", 0),
+    "eye_bolt": (88.1, "2-fold about z", 1),
+    "gear": (64.8, "18-fold about z; 2-fold about 18 axes", 35),
+    "zigzag": (81.2, "2-fold about y", 1),
+}
+REAL = {
+    "tee_fitting": (66.8, "none"),
+    "screw": (56.9, "continuous about z"),
+    "eye_bolt": (193.1, "none"),
+    "gear": (116.3, "28-fold about z"),
+    "bracket": (139.4, "2-fold about [0.708, -0.706, 0.005]"),
+}
+REAL_DIR = Path(
+    os.environ.get(
+        "POSEFUSE_SHARED_OBJECTS", Path(__file__).resolve().parents[2] / "shared" / "objects"
+    )
+)
+
+
+def test_committed_catalog_has_the_documented_symmetries():
+    catalog = load_catalog(DEFAULT_CATALOG)
+    assert [m.name for m in catalog.values()] == list(PROCEDURAL)
+    for model in catalog.values():
+        diameter_mm, description, n_discrete = PROCEDURAL[model.name]
+        assert model.diameter * 1000 == pytest.approx(diameter_mm, abs=0.05)
+        assert model.describe_symmetries() == description
+        assert len(model.symmetries_discrete) == n_discrete
+
+
+def test_committed_catalog_is_what_the_generator_writes():
+    committed = load_catalog(DEFAULT_CATALOG)
+    fresh = robi_like_catalog()
+    for obj_id, model in fresh.items():
+        other = committed[obj_id]
+        assert other.name == model.name
+        assert other.diameter == pytest.approx(model.diameter, rel=1e-6)
+        assert other.describe_symmetries() == model.describe_symmetries()
+        np.testing.assert_allclose(other.mesh.bounds, model.mesh.bounds, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", list(REAL))
+def test_real_mesh_symmetries(name):
+    path = REAL_DIR / f"{name}.stl"
+    if not path.is_file():
+        pytest.skip(f"{path} not present (set POSEFUSE_SHARED_OBJECTS to the meshes' folder)")
+    mesh = load_mesh(path, "mm")
+    diameter = mesh_diameter(mesh)
+    expected_diameter, expected = REAL[name]
+    assert diameter * 1000 == pytest.approx(expected_diameter, abs=0.05)
+    assert detect_symmetries(mesh, diameter).describe() == expected
