@@ -91,8 +91,12 @@ def gear() -> trimesh.Trimesh:
     for k in range(n_teeth):
         a = 2 * np.pi * k / n_teeth
         half = np.pi / n_teeth
-        for da, r in ((-0.55 * half, r_root), (-0.3 * half, r_tip), (0.3 * half, r_tip),
-                      (0.55 * half, r_root)):
+        for da, r in (
+            (-0.55 * half, r_root),
+            (-0.3 * half, r_tip),
+            (0.3 * half, r_tip),
+            (0.55 * half, r_root),
+        ):
             pts.append((r * np.cos(a + da), r * np.sin(a + da)))
         for da in np.linspace(0.55 * half, 2 * half - 0.55 * half, 4)[1:-1]:
             pts.append((r_root * np.cos(a + da), r_root * np.sin(a + da)))
@@ -109,14 +113,22 @@ def zigzag() -> trimesh.Trimesh:
     # Z profile in the (x, z) plane, point-symmetric about the origin
     half = web / 2
     profile = [
-        (-flange, -half), (t / 2, -half), (t / 2, half - t), (flange, half - t),
-        (flange, half), (-t / 2, half), (-t / 2, -half + t), (-flange, -half + t),
+        (-flange, -half),
+        (t / 2, -half),
+        (t / 2, half - t),
+        (flange, half - t),
+        (flange, half),
+        (-t / 2, half),
+        (-t / 2, -half + t),
+        (-flange, -half + t),
     ]
     sheet = mf.CrossSection([np.array(profile)]).extrude(width).translate([0, 0, -width / 2])
     sheet = sheet.rotate([90, 0, 0])  # profile plane -> xz, extrusion along y
     hole = mf.Manifold.cylinder(20, 3.5, 3.5, 36, True)
-    sheet = sheet - hole.translate([-flange * 0.55, 0, -half]) - hole.translate(
-        [flange * 0.55, 0, half]
+    sheet = (
+        sheet
+        - hole.translate([-flange * 0.55, 0, -half])
+        - hole.translate([flange * 0.55, 0, half])
     )
     return _to_trimesh(sheet)
 

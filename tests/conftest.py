@@ -1,0 +1,27 @@
+"""Shared fixtures: a small rendered BOP dataset of the committed catalog."""
+
+import numpy as np
+import pytest
+
+from estimator.camera import Camera
+from estimator.objects import load_catalog
+from service.cli import DEFAULT_CATALOG
+from sim.scenes import SceneSpec
+from sim.synth import SynthConfig, generate_dataset
+
+SMALL_CAMERA = Camera(np.array([[462.0, 0, 320.0], [0, 462.0, 180.0], [0, 0, 1]]), 640, 360)
+
+
+@pytest.fixture(scope="session")
+def robi_catalog():
+    return load_catalog(DEFAULT_CATALOG)
+
+
+@pytest.fixture(scope="session")
+def small_dataset_root(tmp_path_factory, robi_catalog):
+    """2 scenes x 3 views at 640x360 (a few seconds to render)."""
+    root = tmp_path_factory.mktemp("bop") / "small"
+    config = SynthConfig(
+        n_scenes=2, seed=11, camera=SMALL_CAMERA, scene=SceneSpec(n_instances=(6, 8), n_views=3)
+    )
+    return generate_dataset(robi_catalog, root, config, show_progress=False)
