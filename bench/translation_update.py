@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
         estimate_translation(grown, prior_mean, prior_cov, start=previous.t_world_obj)
         times.append(time.perf_counter() - start)
     ms = np.array(times) * 1000
-    print(f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, python {platform.python_version()}"
+    )
     print(
         f"translation update, {args.views} views of history + 1 new, {args.repeats} runs: "
         f"median {np.median(ms):.3f} ms, p90 {np.percentile(ms, 90):.3f} ms"

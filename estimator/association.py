@@ -105,15 +105,17 @@ def epipolar_chi2(
     q = p[:, :2] / p[:, 2:3] @ K[:2, :2].T + K[:2, 2]  # (2, 2) pixels
     seg = q[1] - q[0]
     length2 = float(seg @ seg)
-    s = 0.0 if length2 < 1e-12 else float(np.clip((uv - q[0]) @ seg / length2, 0.0, 1.0))
+    s_raw = 0.0 if length2 < 1e-12 else float((uv - q[0]) @ seg / length2)
+    s = min(max(s_raw, 0.0), 1.0)
     d = uv - (q[0] + s * seg)
-    if length2 < 1e-12:
-        normal = d / max(np.linalg.norm(d), 1e-12)
-    else:
-        normal = np.array([-seg[1], seg[0]]) / np.sqrt(length2)
-    # first view's center noise, seen from the new camera at the closest depth (approx.)
-    var = float(normal @ cov_uv @ normal + normal @ np.linalg.inv(track.obs.info[0]) @ normal)
-    return float(d @ d) / var
+    cov_first = np.linalg.inv(track.obs.info[0])  # first view's center noise (approx. scale)
+    if length2 < 1e-12 or s != s_raw:
+        # beyond an end of the segment, or the new camera looks along the ray (the same pose
+        # again): the full 2D distance to the nearest point
+        return float(d @ np.linalg.solve(cov_uv + cov_first, d))
+    normal = np.array([-seg[1], seg[0]]) / np.sqrt(length2)
+    var = float(normal @ (cov_uv + cov_first) @ normal)
+    return float(d @ normal) ** 2 / var
 
 
 def pair_cost(

@@ -160,6 +160,9 @@ class Catalog(Mapping[int, ObjectModel]):
                 self.root or "catalog", f"no object with obj_id {obj_id}{where}"
             ) from None
 
+    def __contains__(self, obj_id: object) -> bool:
+        return obj_id in self._models
+
     def __iter__(self) -> Iterator[int]:
         return iter(self._models)
 

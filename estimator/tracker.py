@@ -232,12 +232,16 @@ class MultiViewEstimator:
         for key in list(self.tracks):
             t = self.tracks[key]
             limit = (
-                self.config.max_misses if t.status == CONFIRMED else self.config.max_misses_tentative
+                self.config.max_misses
+                if t.status == CONFIRMED
+                else self.config.max_misses_tentative
             )
             if t.misses >= limit:
                 dropped.append(key)
                 del self.tracks[key]
-        self.last_report = UpdateReport(tuple(assigned), tuple(started), tuple(dropped), tuple(skipped))
+        self.last_report = UpdateReport(
+            tuple(assigned), tuple(started), tuple(dropped), tuple(skipped)
+        )
         self.last_stamp_ns = stamp
         return [self._estimate(self.tracks[k], stamp) for k in touched if k in self.tracks]
 

@@ -94,7 +94,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_overlay(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
-
     from sim.overlay import write_gt_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)
@@ -103,10 +102,45 @@ def _cmd_overlay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run_dataset(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.frontend.oracle import OracleConfig, OracleFrontend
+    from estimator.run_dataset import run_translation, summary_markdown, write_rows
+
+    if args.frontend != "oracle":
+        raise PosefuseError(f"--frontend: {args.frontend!r} is not available yet; use 'oracle'")
+    dataset = load_dataset(args.dataset, split=args.split)
+    try:
+        oracle = OracleConfig(
+            center_sigma_px=args.center_sigma,
+            drop_rate=args.drop_rate,
+            false_positive_rate=args.false_positive_rate,
+            with_masks=False,
+            seed=args.seed,
+        )
+    except ValueError as exc:
+        raise PosefuseError(f"oracle settings: {exc}") from None
+    scene_ids = tuple(args.scenes) if args.scenes else None
+    for scene_id in scene_ids or ():
+        dataset.scene(scene_id)  # a DatasetError naming the missing scene
+    run = run_translation(
+        dataset, OracleFrontend(dataset, oracle), scene_ids=scene_ids, show_progress=not args.quiet
+    )
+    out = Path(args.out)
+    write_rows(out / "translation_errors.csv", run.rows)
+    summary = summary_markdown(run, dataset.catalog)
+    (out / "translation_summary.md").write_text(
+        f"Median translation error (and relative to the camera distance) after 1, 2, 4 and 8 "
+        f"views.\n\n{summary}\n"
+    )
+    print(summary)
+    print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
+    return 0
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
-
     from estimator.objects import load_catalog
     from sim.overlay import write_gt_overlay
     from sim.scenes import SceneSpec
@@ -179,6 +213,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--im", type=int, default=0)
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_overlay)
+
+    p = sub.add_parser(
+        "run-dataset",
+        help="run the estimator over a BOP dataset, views one at a time, and score it",
+    )
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--out", required=True, help="folder for the error tables")
+    p.add_argument("--frontend", default="oracle", help="oracle (detections from ground truth)")
+    p.add_argument("--scenes", type=int, nargs="+", help="only these scene ids")
+    p.add_argument("--center-sigma", type=float, default=2.0, help="oracle center noise, px")
+    p.add_argument("--drop-rate", type=float, default=0.1, help="oracle missed detections")
+    p.add_argument("--false-positive-rate", type=float, default=0.05)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run_dataset)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)

@@ -1,0 +1,57 @@
+"""Measures of the back end against ground truth: association quality, translation error, NEES.
+
+Detections carry the index of the true instance they came from (-1 for a false positive). A
+track's identity is the instance most of its detections came from.
+
+- precision: of the detections in confirmed tracks, the fraction that belong to the track's
+  instance;
+- recall: of all true detections, the fraction that ended in the confirmed track holding most
+  of their instance's detections (a split track loses the smaller part).
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class AssociationScore:
+    precision: float
+    recall: float
+    n_true_detections: int
+    n_in_confirmed_tracks: int
+
+
+def track_identities(members: dict[str, list[int]]) -> dict[str, int]:
+    """object_id -> the instance most of its detections came from (-1 if false positives)."""
+    return {oid: Counter(m).most_common(1)[0][0] for oid, m in members.items() if m}
+
+
+def association_score(
+    members: dict[str, list], confirmed: set[str], n_true_detections: int
+) -> AssociationScore:
+    """members: object_id -> the instance (any hashable; -1 = false positive) of each of its
+    detections, in order."""
+    identity = track_identities(members)
+    in_confirmed = [(oid, x) for oid in confirmed for x in members.get(oid, [])]
+    correct = sum(x == identity[oid] and x != -1 for oid, x in in_confirmed)
+    # the main track of each instance: the confirmed track holding most of its detections
+    holdings: dict[object, Counter] = defaultdict(Counter)
+    for oid, x in in_confirmed:
+        if x != -1:
+            holdings[x][oid] += 1
+    recalled = sum(c.most_common(1)[0][1] for c in holdings.values())
+    return AssociationScore(
+        precision=correct / len(in_confirmed) if in_confirmed else float("nan"),
+        recall=recalled / n_true_detections if n_true_detections else float("nan"),
+        n_true_detections=n_true_detections,
+        n_in_confirmed_tracks=len(in_confirmed),
+    )
+
+
+def nees(error: np.ndarray, cov: np.ndarray) -> float:
+    """Normalised estimation error squared e^T P^-1 e (expected value: the dimension)."""
+    return float(error @ np.linalg.solve(cov, error))
