@@ -39,7 +39,7 @@ class AssociationConfig:
     gate_chi2: float = 16.0  # squared Mahalanobis gate of the 2D innovation (p ~ 3e-4)
     epipolar_gate_chi2: float = 16.0  # squared distance across the projected ray, in variances
     ray_depth_range: tuple[float, float] = (0.3, 3.0)  # x prior depth: the ray segment searched
-    pair_gate_chi2: float = 25.0  # two-view cost increase (3 dof incl. the depth prior)
+    pair_gate_chi2: float = 25.0  # two-view cost increase (incl. both box-depth terms)
 
     def __post_init__(self) -> None:
         lo, hi = self.ray_depth_range
@@ -119,12 +119,27 @@ def epipolar_chi2(
 
 
 def pair_cost(
-    track: TrackView, T_cam_world: np.ndarray, K: np.ndarray, uv: np.ndarray, cov_uv: np.ndarray
+    track: TrackView,
+    T_cam_world: np.ndarray,
+    K: np.ndarray,
+    uv: np.ndarray,
+    cov_uv: np.ndarray,
+    box_depth: float | None = None,
+    box_depth_rel_sigma: float = 0.5,
 ) -> float:
-    """Increase of the track's robust cost when the detection is added (two-view solve)."""
+    """Increase of the track's robust cost when the detection is added (two-view solve).
+
+    With ``box_depth`` (the depth the detection's box size suggests, metres) the triangulated
+    depth in the new camera must also agree with it, to ``box_depth_rel_sigma``: two rays of
+    different parts can meet, but rarely at the depths both boxes suggest.
+    """
     obs = track.obs.append(T_cam_world, K, uv, cov_uv, 0)
     est = estimate_translation(obs, track.prior_mean, track.prior_cov, start=track.t_world_obj)
-    return robust_cost(est.t_world_obj, obs, track.prior_mean, track.prior_cov) - track.cost
+    cost = robust_cost(est.t_world_obj, obs, track.prior_mean, track.prior_cov) - track.cost
+    if box_depth is not None:
+        z = T_cam_world[2, :3] @ est.t_world_obj + T_cam_world[2, 3]
+        cost += ((z - box_depth) / (box_depth_rel_sigma * box_depth)) ** 2
+    return float(cost)
 
 
 def cost_matrix(
@@ -134,10 +149,12 @@ def cost_matrix(
     centers: np.ndarray,
     covs: np.ndarray,
     config: AssociationConfig,
+    box_depths: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, D) costs of one class's tracks against its detections; GATED where gated out.
 
-    centers: (D, 2) undistorted pixels; covs: (D, 2, 2).
+    centers: (D, 2) undistorted pixels; covs: (D, 2, 2); box_depths: (D,) metres, the depth
+    each detection's box size suggests (used for one-view tracks), or None.
     """
     cost = np.full((len(tracks), len(centers)), GATED)
     for i, track in enumerate(tracks):
@@ -149,7 +166,8 @@ def cost_matrix(
             else:
                 e = epipolar_chi2(track, T_cam_world, K, uv, cov_uv, config.ray_depth_range)
                 if e <= config.epipolar_gate_chi2:
-                    c = pair_cost(track, T_cam_world, K, uv, cov_uv)
+                    hint = None if box_depths is None else float(box_depths[j])
+                    c = pair_cost(track, T_cam_world, K, uv, cov_uv, hint)
                     if c <= config.pair_gate_chi2:
                         cost[i, j] = c
     return cost

@@ -37,6 +37,7 @@ from estimator.translation import (
     PRIOR_DEPTH_REL_SIGMA,
     CenterObservations,
     TranslationEstimate,
+    bbox_diagonal_ratio,
     estimate_translation,
     predict,
     prior_from_first_view,
@@ -162,6 +163,7 @@ class MultiViewEstimator:
         self.config = config or TrackerConfig()
         self.tracks: dict[str, Track] = {}
         self._serial: dict[int, int] = {}
+        self._size_ratios: dict[int, float] = {}  # per class, for the first-view depth
         self.last_report = UpdateReport((), (), (), ())
         self.last_stamp_ns: int | None = None
 
@@ -204,6 +206,7 @@ class MultiViewEstimator:
                 centers[det_idx].reshape(-1, 2),
                 np.array([detections[j].center_cov for j in det_idx]).reshape(-1, 2, 2),
                 self.config.association,
+                np.array([self._box_depth(detections[j], K) for j in det_idx]),
             )
             matched_tracks, matched_dets = set(), set()
             for i, jj in assign(cost):
@@ -274,6 +277,17 @@ class MultiViewEstimator:
 
     # ---- internals --------------------------------------------------------------------------
 
+    def _box_depth(self, det: Detection, K: np.ndarray) -> float:
+        """The depth at which the part's expected box matches the detection's (SSD-6D)."""
+        f = 0.5 * (K[0, 0] + K[1, 1])
+        return f * self._size_ratio(det.obj_id) * self.catalog[det.obj_id].diameter / det.bbox_diagonal
+
+    def _size_ratio(self, obj_id: int) -> float:
+        if obj_id not in self._size_ratios:
+            model = self.catalog[obj_id]
+            self._size_ratios[obj_id] = bbox_diagonal_ratio(model.points, model.diameter)
+        return self._size_ratios[obj_id]
+
     def _classes(self) -> set[int]:
         return {t.obj_id for t in self.tracks.values()}
 
@@ -297,6 +311,7 @@ class MultiViewEstimator:
             det.bbox_diagonal,
             model.diameter,
             self.config.prior_depth_rel_sigma,
+            self._size_ratio(det.obj_id),
         )
         obs = CenterObservations.empty().append(T_cam_world, K, uv, det.center_cov, stamp)
         estimate = estimate_translation(obs, prior_mean, prior_cov)
