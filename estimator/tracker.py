@@ -280,7 +280,8 @@ class MultiViewEstimator:
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
         """The depth at which the part's expected box matches the detection's (SSD-6D)."""
         f = 0.5 * (K[0, 0] + K[1, 1])
-        return f * self._size_ratio(det.obj_id) * self.catalog[det.obj_id].diameter / det.bbox_diagonal
+        size = self._size_ratio(det.obj_id) * self.catalog[det.obj_id].diameter
+        return f * size / det.bbox_diagonal
 
     def _size_ratio(self, obj_id: int) -> float:
         if obj_id not in self._size_ratios:

@@ -152,10 +152,11 @@ def prior_from_first_view(
     """The weak first-view prior N(t0, P0) in the world frame.
 
     Depth z = f * size_ratio * diameter / bbox_diagonal (``size_ratio`` from
-    :func:`bbox_diagonal_ratio`, 1 for the plain SSD-6D rule); t0 is ``uv`` back-projected at z; P0 is isotropic
-    with standard deviation ``depth_rel_sigma * z``. It constrains only what the first view's
-    center cannot, the depth: the lateral position comes from that center itself, which is one
-    of the track's measurements (a prior tight across the ray would count it twice).
+    :func:`bbox_diagonal_ratio`, 1 for the plain SSD-6D rule); t0 is ``uv`` back-projected at
+    z; P0 is isotropic with standard deviation ``depth_rel_sigma * z``. It constrains only what
+    the first view's center cannot, the depth: the lateral position comes from that center
+    itself, which is one of the track's measurements (a prior tight across the ray would count
+    it twice).
 
     Returns:
         t0: (3,) metres; P0: (3, 3) m^2.
