@@ -15,6 +15,7 @@ most one instance; estimates matched to barely visible instances neither count n
 from __future__ import annotations
 
 import csv
+import json
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,6 +113,25 @@ def read_results(path: str | Path) -> list[PoseResult]:
             T[:3, 3] = t / 1000.0
             results.append(PoseResult(scene_id, im_id, obj_id, score, T, time))
     return results
+
+
+def write_targets(path: str | Path, targets: list[tuple[int, int]]) -> Path:
+    """The views a results file is scored on, as BOP's ``test_targets`` (one entry per view)."""
+    path = Path(path)
+    entries = [{"scene_id": s, "im_id": i} for s, i in sorted(set(targets))]
+    path.write_text(json.dumps(entries, indent=1) + "\n")
+    return path
+
+
+def read_targets(path: str | Path) -> list[tuple[int, int]]:
+    path = Path(path)
+    if not path.is_file():
+        raise ResultsError(path, None, "file not found")
+    try:
+        entries = json.loads(path.read_text())
+        return [(int(e["scene_id"]), int(e["im_id"])) for e in entries]
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError, KeyError, ValueError):
+        raise ResultsError(path, None, "needs a JSON list of {scene_id, im_id}") from None
 
 
 def ground_truth_results(dataset) -> list[PoseResult]:
@@ -212,8 +232,10 @@ def evaluate(
     threshold: float = 0.1,
     min_visib: float = 0.75,
     metric: str = "adds",
+    targets: list[tuple[int, int]] | None = None,
 ) -> EvaluationReport:
-    """Detection rate per object of ``results`` on the annotated views of ``dataset``."""
+    """Detection rate per object of ``results`` on the annotated views of ``dataset``, or only
+    on the ``targets`` views ((scene_id, im_id) pairs)."""
     if metric not in ("adds", "mssd"):
         raise ValueError(f"metric must be 'adds' or 'mssd', got {metric!r}")
     report = EvaluationReport(metric, threshold, min_visib)
@@ -222,7 +244,11 @@ def evaluate(
     by_view: dict[tuple[int, int, int], list[PoseResult]] = defaultdict(list)
     for r in results:
         by_view[(r.scene_id, r.im_id, r.obj_id)].append(r)
-    for view in dataset.views():
+    if targets is None:
+        views = dataset.views()
+    else:
+        views = (dataset.scene(s).view(i) for s, i in sorted(set(targets)))
+    for view in views:
         for obj_id, score in report.objects.items():
             gts = [g for g in view.gts if g.obj_id == obj_id]
             score.n_instances += sum(g.visib_fract > min_visib for g in gts)

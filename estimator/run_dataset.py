@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from estimator.evaluation import PoseResult
 from estimator.frontend.oracle import OracleFrontend
 from estimator.metrics import AssociationScore, association_score, nees, track_identities
 from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
@@ -39,19 +40,31 @@ class TranslationRow:
 
 @dataclass(frozen=True)
 class DatasetRun:
+    """rows: translation errors; association: its score; results: per checkpoint, the pose
+    estimates expressed in the checkpoint's view (BOP results), and targets: the views scored."""
+
     rows: tuple[TranslationRow, ...]
     association: AssociationScore
+    results: dict[int, list[PoseResult]]
+    targets: dict[int, list[tuple[int, int]]]
 
 
-def run_translation(
+def run_dataset(
     dataset,
     frontend: OracleFrontend,
     config: TrackerConfig | None = None,
     checkpoints: tuple[int, ...] = CHECKPOINTS,
     scene_ids: tuple[int, ...] | None = None,
     show_progress: bool = True,
+    rotation: bool = False,
+    estimator_factory=None,
 ) -> DatasetRun:
+    """Run scene by scene. With ``rotation`` the images are read and the rotation step runs
+    too (the front end must give masks); ``estimator_factory`` makes each scene's estimator
+    (default: ``MultiViewEstimator(dataset.catalog, config)``)."""
     rows: list[TranslationRow] = []
+    results: dict[int, list[PoseResult]] = {n: [] for n in checkpoints}
+    targets: dict[int, list[tuple[int, int]]] = {n: [] for n in checkpoints}
     members_all: dict[str, list[int]] = {}
     confirmed_all: set[str] = set()
     n_true = 0
@@ -60,15 +73,18 @@ def run_translation(
     bar = tqdm(total=n_views_total, desc="views", unit="view", disable=not show_progress)
     for scene_id in scene_ids:
         scene = dataset.scene(scene_id)
-        estimator = MultiViewEstimator(dataset.catalog, config)
+        estimator = (
+            estimator_factory()
+            if estimator_factory
+            else MultiViewEstimator(dataset.catalog, config)
+        )
         members: dict[str, list[int]] = defaultdict(list)
         for count, im_id in enumerate(scene.im_ids, start=1):
             view = scene.view(im_id)
             pairs = frontend.detect_with_truth(view)
             n_true += sum(k >= 0 for _, k in pairs)
-            frame = Frame(
-                stamp_ns=count * 100_000_000, camera=view.camera, T_world_cam=view.T_world_cam
-            )
+            image = scene.load_rgb(im_id) if rotation else None
+            frame = Frame(count * 100_000_000, view.camera, view.T_world_cam, image)
             estimator.update(frame, [d for d, _ in pairs])
             report = estimator.last_report
             for j, oid in report.assigned + report.started:
@@ -76,6 +92,13 @@ def run_translation(
             bar.update(1)
             if count not in checkpoints:
                 continue
+            targets[count].append((scene_id, im_id))
+            for e in estimator.estimates(include_tentative=count == 1):
+                if e.hypotheses:
+                    T_cam_obj = view.T_cam_world @ e.T_world_obj
+                    results[count].append(
+                        PoseResult(scene_id, im_id, e.class_id, e.confidence, T_cam_obj)
+                    )
             identity = track_identities(members)
             cam_centre = view.T_world_cam[:3, 3]
             for oid, track in sorted(estimator.tracks.items()):
@@ -104,7 +127,8 @@ def run_translation(
             f"{scene_id}/{k}" for k, t in estimator.tracks.items() if t.status == CONFIRMED
         }
     bar.close()
-    return DatasetRun(tuple(rows), association_score(members_all, confirmed_all, n_true))
+    score = association_score(members_all, confirmed_all, n_true)
+    return DatasetRun(tuple(rows), score, results, targets)
 
 
 def write_rows(path: str | Path, rows: tuple[TranslationRow, ...]) -> Path:

@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from estimator.association import (
     AssociationConfig,
@@ -31,7 +32,10 @@ from estimator.association import (
 )
 from estimator.camera import Camera
 from estimator.frontend.detection import Detection
+from estimator.mixture import MixtureConfig, RotationMixture
 from estimator.objects import Catalog
+from estimator.rotation import RotationConfig, RotationMatcher
+from estimator.templates import TemplateBank, TemplateConfig, build_template_bank
 from estimator.translation import (
     MIN_DEPTH,
     PRIOR_DEPTH_REL_SIGMA,
@@ -105,6 +109,13 @@ class TrackerConfig:
     max_misses_tentative: int = 2
     border_margin_px: float = 2.0  # a box this close to the border is truncated
     prior_depth_rel_sigma: float = PRIOR_DEPTH_REL_SIGMA
+    rotation: RotationConfig = RotationConfig()
+    mixture: MixtureConfig = MixtureConfig()
+    templates: TemplateConfig = TemplateConfig()
+    # a view's rotation is measured once the depth is known to this relative std; earlier
+    # views of the track wait (their images are kept for up to max_pending_views frames)
+    rotation_max_depth_rel_std: float = 0.05
+    max_pending_views: int = 8
 
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
@@ -124,6 +135,11 @@ class Track:
     misses: int = 0
     status: str = TENTATIVE
     detections: list[tuple[int, int]] = field(default_factory=list)  # (stamp_ns, index)
+    mixture: RotationMixture | None = None
+    # views waiting for a good enough translation: (stamp_ns, T_cam_world, K, mask)
+    pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = field(
+        default_factory=list
+    )
 
     def view(self) -> TrackView:
         e = self.estimate
@@ -158,9 +174,23 @@ def validate_pose(T: np.ndarray, name: str = "T_world_cam") -> np.ndarray:
 class MultiViewEstimator:
     """Incremental multi-view pose estimator over a catalog (see the module docstring)."""
 
-    def __init__(self, catalog: Catalog, config: TrackerConfig | None = None):
+    def __init__(
+        self,
+        catalog: Catalog,
+        config: TrackerConfig | None = None,
+        banks: dict[int, TemplateBank] | None = None,
+        template_cache_dir: str | None = None,
+        show_progress: bool = False,
+    ):
+        """banks: template banks per obj_id (built, or loaded from the cache, when missing)."""
         self.catalog = catalog
         self.config = config or TrackerConfig()
+        self._matchers = {
+            k: RotationMatcher(b, self.config.rotation) for k, b in (banks or {}).items()
+        }
+        self._template_cache_dir = template_cache_dir
+        self._show_progress = show_progress
+        self._images: dict[int, np.ndarray] = {}  # stamp_ns -> image, the last few frames
         self.tracks: dict[str, Track] = {}
         self._serial: dict[int, int] = {}
         self._size_ratios: dict[int, float] = {}  # per class, for the first-view depth
@@ -231,6 +261,18 @@ class MultiViewEstimator:
                 started.append((j, track.object_id))
                 touched.append(track.object_id)
 
+        if frame.image is not None:
+            self._images[stamp] = frame.image
+            for stale in sorted(self._images)[: -self.config.max_pending_views]:
+                del self._images[stale]
+            index_of = dict(assigned + started)
+            for j, oid in assigned + started:
+                track = self.tracks[oid]
+                track.pending.append((stamp, T_cam_world, K, detections[j].mask))
+                del track.pending[: -self.config.max_pending_views]
+            for oid in index_of.values():
+                self._measure_rotations(self.tracks[oid])
+
         dropped = []
         for key in list(self.tracks):
             t = self.tracks[key]
@@ -276,6 +318,51 @@ class MultiViewEstimator:
         return len(keys)
 
     # ---- internals --------------------------------------------------------------------------
+
+    def banks(self) -> dict[int, TemplateBank]:
+        """The template banks built or loaded so far (to share with other estimators)."""
+        return {k: m.bank for k, m in self._matchers.items()}
+
+    def matcher(self, obj_id: int) -> RotationMatcher:
+        """The rotation matcher of a class (its template bank built or loaded on first use)."""
+        if obj_id not in self._matchers:
+            bank = build_template_bank(
+                self.catalog[obj_id],
+                self.config.templates,
+                self._template_cache_dir,
+                show_progress=self._show_progress,
+            )
+            self._matchers[obj_id] = RotationMatcher(bank, self.config.rotation)
+        return self._matchers[obj_id]
+
+    def _translation_known(self, track: Track, T_cam_world: np.ndarray) -> bool:
+        t = track.estimate.t_world_obj
+        p = T_cam_world[:3, :3] @ t + T_cam_world[:3, 3]
+        if p[2] <= MIN_DEPTH:
+            return False
+        ray_world = T_cam_world[:3, :3].T @ (p / np.linalg.norm(p))
+        depth_std = np.sqrt(ray_world @ track.estimate.cov @ ray_world)
+        return depth_std / p[2] <= self.config.rotation_max_depth_rel_std
+
+    def _measure_rotations(self, track: Track) -> None:
+        """Measure the rotation in the track's waiting views, once its translation allows."""
+        if not track.pending or not self._translation_known(track, track.pending[-1][1]):
+            return
+        if track.mixture is None:
+            track.mixture = RotationMixture.for_model(
+                self.catalog[track.obj_id], self.config.mixture
+            )
+        matcher = self.matcher(track.obj_id)
+        t_world = track.estimate.t_world_obj
+        for stamp, T_cam_world, K, mask in track.pending:
+            image = self._images.get(stamp)
+            if image is None:
+                continue
+            t_cam = T_cam_world[:3, :3] @ t_world + T_cam_world[:3, 3]
+            for m in matcher.measure(image, K, t_cam, mask):
+                R_world_obj = T_cam_world[:3, :3].T @ m.R_cam_obj
+                track.mixture.add(R_world_obj, m.confidence)
+        track.pending.clear()
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
         """The depth at which the part's expected box matches the detection's (SSD-6D)."""
@@ -343,6 +430,19 @@ class MultiViewEstimator:
         cov = np.zeros((6, 6))
         cov[:3, :3] = track.estimate.cov
         cov[3:, 3:] = np.eye(3) * ROTATION_UNKNOWN_VAR
+        confidence = 0.0
+        hypotheses: tuple[RotationHypothesis, ...] = ()
+        best = track.mixture.best() if track.mixture is not None else None
+        if best is not None:
+            T[:3, :3] = best.R_world_obj
+            cov[3:, 3:] = best.cov
+            weights = track.mixture.weights
+            hypotheses = tuple(
+                RotationHypothesis(Rotation.from_matrix(c.R_world_obj).as_quat(), float(w), c.n)
+                for c, w in zip(track.mixture.components, weights, strict=True)
+            )
+            mean_similarity = best.confidence / best.n
+            confidence = float(weights.max() * mean_similarity)
         return ObjectEstimate(
             stamp_ns=stamp,
             object_id=track.object_id,
@@ -350,8 +450,8 @@ class MultiViewEstimator:
             class_name=self.catalog[track.obj_id].name,
             T_world_obj=T,
             cov=cov,
-            confidence=0.0,
-            hypotheses=(),
+            confidence=confidence,
+            hypotheses=hypotheses,
             n_views=len(track.obs),
             status=track.status,
         )

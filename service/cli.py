@@ -78,12 +78,18 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
-    from estimator.evaluation import evaluate, read_results
+    from estimator.evaluation import evaluate, read_results, read_targets
 
     dataset = load_dataset(args.dataset, split=args.split)
     results = read_results(args.results)
+    targets = read_targets(args.targets) if args.targets else None
     report = evaluate(
-        dataset, results, threshold=args.threshold, min_visib=args.min_visib, metric=args.metric
+        dataset,
+        results,
+        threshold=args.threshold,
+        min_visib=args.min_visib,
+        metric=args.metric,
+        targets=targets,
     )
     print(report.to_markdown())
     if args.json:
@@ -104,18 +110,21 @@ def _cmd_overlay(args: argparse.Namespace) -> int:
 
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
+    from estimator.evaluation import evaluate, write_results, write_targets
     from estimator.frontend.oracle import OracleConfig, OracleFrontend
-    from estimator.run_dataset import run_translation, summary_markdown, write_rows
+    from estimator.run_dataset import CHECKPOINTS, run_dataset, summary_markdown, write_rows
+    from estimator.tracker import MultiViewEstimator
 
     if args.frontend != "oracle":
         raise PosefuseError(f"--frontend: {args.frontend!r} is not available yet; use 'oracle'")
     dataset = load_dataset(args.dataset, split=args.split)
+    rotation = not args.translation_only
     try:
         oracle = OracleConfig(
             center_sigma_px=args.center_sigma,
             drop_rate=args.drop_rate,
             false_positive_rate=args.false_positive_rate,
-            with_masks=False,
+            with_masks=rotation,
             seed=args.seed,
         )
     except ValueError as exc:
@@ -123,18 +132,66 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     scene_ids = tuple(args.scenes) if args.scenes else None
     for scene_id in scene_ids or ():
         dataset.scene(scene_id)  # a DatasetError naming the missing scene
-    run = run_translation(
-        dataset, OracleFrontend(dataset, oracle), scene_ids=scene_ids, show_progress=not args.quiet
+    shared = MultiViewEstimator(dataset.catalog, show_progress=not args.quiet)
+    if rotation:  # build (or load) every class's templates once, with a progress bar
+        for obj_id in dataset.catalog:
+            shared.matcher(obj_id)
+
+    def factory():
+        return MultiViewEstimator(dataset.catalog, banks=shared.banks())
+
+    run = run_dataset(
+        dataset,
+        OracleFrontend(dataset, oracle),
+        scene_ids=scene_ids,
+        show_progress=not args.quiet,
+        rotation=rotation,
+        estimator_factory=factory,
     )
     out = Path(args.out)
     write_rows(out / "translation_errors.csv", run.rows)
     summary = summary_markdown(run, dataset.catalog)
     (out / "translation_summary.md").write_text(
-        f"Median translation error (and relative to the camera distance) after 1, 2, 4 and 8 "
+        "Median translation error (and relative to the camera distance) after 1, 2, 4 and 8 "
         f"views.\n\n{summary}\n"
     )
     print(summary)
     print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
+    if rotation:
+        lines = ["| object | " + " | ".join(f"{n} views" for n in CHECKPOINTS) + " |"]
+        lines.append("|---|" + "---|" * len(CHECKPOINTS))
+        reports = {}
+        for n in CHECKPOINTS:
+            if not run.targets[n]:
+                continue
+            write_results(out / f"results_{n}views.csv", run.results[n])
+            write_targets(out / f"targets_{n}views.json", run.targets[n])
+            reports[n] = evaluate(dataset, run.results[n], targets=run.targets[n])
+        for obj_id, model in dataset.catalog.items():
+            cells = []
+            for n in CHECKPOINTS:
+                o = reports[n].objects[obj_id] if n in reports else None
+                cells.append(
+                    "-"
+                    if o is None or not o.n_instances
+                    else f"{100 * o.rate:.1f}% ({o.n_found}/{o.n_instances})"
+                )
+            lines.append(f"| {model.name} | " + " | ".join(cells) + " |")
+        cells = [
+            f"{100 * reports[n].rate:.1f}% ({reports[n].n_found}/{reports[n].n_instances})"
+            if n in reports
+            else "-"
+            for n in CHECKPOINTS
+        ]
+        lines.append("| all | " + " | ".join(cells) + " |")
+        table = "\n".join(lines)
+        (out / "detection_rate.md").write_text(
+            "ADD(-S)-0.1d detection rate (visib_fract > 0.75) in the view after which the "
+            f"estimates were taken.\n\n{table}\n"
+        )
+        print("\nADD(-S)-0.1d detection rate (visib_fract > 0.75):")
+        print(table)
+        print(f"wrote results_*views.csv, targets_*views.json and detection_rate.md to {out}")
     return 0
 
 
@@ -203,6 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=0.1, help="fraction of the diameter")
     p.add_argument("--min-visib", type=float, default=0.75)
     p.add_argument("--metric", default="adds", choices=["adds", "mssd"])
+    p.add_argument("--targets", help="JSON list of {scene_id, im_id}: score only these views")
     p.add_argument("--json", help="also write the report as JSON here")
     p.set_defaults(func=_cmd_eval)
 
@@ -227,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-rate", type=float, default=0.1, help="oracle missed detections")
     p.add_argument("--false-positive-rate", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--translation-only", action="store_true", help="skip the rotation step")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)
 

@@ -1,0 +1,174 @@
+"""RotationMixture: an object's rotation as a max-mixture on SO(3) (paper Section V-B, V-C).
+
+Each component has a mean ``R_world_obj``, the measurements it accepted (world-frame rotations
+with their LINE-2D confidences) and their accumulated confidence ``c_i``; its weight is
+``w_i = c_i / sum_j c_j``.
+
+A new measurement is first replaced, for every component, by its symmetric equivalent closest
+to that component's mean (discrete symmetries by enumeration; a continuous axis in closed form,
+see :func:`closest_equivalent`). The component with the smallest angle takes it if the angle is
+below the gate (30 degrees), otherwise it founds a new component. The accepting component's
+mean is refined by confidence-weighted Gauss-Newton on so(3), re-selecting every member's
+symmetric equivalent at each iteration, with residuals ``r_k = log(R_k R^T)`` (a left
+perturbation in the world frame) and their exact Jacobian ``J_r^-1(r_k)``.
+
+The covariance of a component is the inverse of ``sum_k (c_k / sigma^2) J_k^T J_k``: a
+measurement of confidence 1 counts as one of standard deviation ``sigma`` per axis. About a
+continuous symmetry axis nothing is observable, so the variance there is that of an angle
+uniform on the circle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.geometry import rotation_angle, so3_exp, so3_log, so3_right_jacobian_inv
+
+UNIFORM_ANGLE_VAR = np.pi**2 / 3
+
+
+@dataclass(frozen=True)
+class MixtureConfig:
+    gate_deg: float = 30.0
+    sigma_deg: float = 10.0  # per-axis std of a measurement of confidence 1
+    max_iterations: int = 10
+    tolerance_rad: float = 1e-7
+
+
+@dataclass(eq=False)
+class RotationComponent:
+    """R_world_obj: (3, 3) mean; members: accepted (R_world_obj (3, 3), confidence);
+    cov: (3, 3) rad^2, left perturbation in the world frame."""
+
+    R_world_obj: np.ndarray
+    members: list[tuple[np.ndarray, float]] = field(default_factory=list)
+    cov: np.ndarray = field(default_factory=lambda: np.eye(3) * UNIFORM_ANGLE_VAR)
+
+    @property
+    def confidence(self) -> float:
+        return float(sum(c for _, c in self.members))
+
+    @property
+    def n(self) -> int:
+        return len(self.members)
+
+
+def _axis_angle_optimum(M: np.ndarray, axis: np.ndarray) -> float:
+    """theta maximising trace(M @ Rot(axis, theta)) (the closest rotation about ``axis``).
+
+    trace(M Rot) = cos(t) (tr M - a^T M a) + sin(t) tr(M hat(a)) + a^T M a.
+    """
+    a = axis
+    A = np.trace(M) - a @ M @ a
+    hat_a = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    B = np.trace(M @ hat_a)
+    return float(np.arctan2(B, A))
+
+
+def closest_equivalent(
+    R_meas: np.ndarray,
+    R_ref: np.ndarray,
+    discrete: np.ndarray,
+    continuous_axes: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """The symmetric equivalent ``R_meas @ S`` closest to ``R_ref``, and its angle.
+
+    Args:
+        R_meas, R_ref: (3, 3) R_world_obj. discrete: (D, 3, 3) object-frame symmetry rotations
+        with the identity. continuous_axes: (A, 3) unit axes in the object frame (A = 0 or 1).
+    """
+    candidates = np.einsum("ij,djk->dik", R_meas, discrete)  # (D, 3, 3)
+    if len(continuous_axes):
+        a = continuous_axes[0]
+        out = []
+        for C in candidates:
+            theta = _axis_angle_optimum(R_ref.T @ C, a)
+            out.append(C @ so3_exp(a * theta))
+        candidates = np.array(out)
+    angles = rotation_angle(np.einsum("ji,djk->dik", R_ref, candidates))
+    k = int(np.argmin(angles))
+    return candidates[k], float(angles[k])
+
+
+class RotationMixture:
+    """The max-mixture of one object (see the module docstring)."""
+
+    def __init__(
+        self,
+        discrete: np.ndarray | None = None,
+        continuous_axes: np.ndarray | None = None,
+        config: MixtureConfig | None = None,
+    ):
+        self.discrete = np.eye(3)[None] if discrete is None else np.asarray(discrete)[:, :3, :3]
+        if not np.allclose(self.discrete[0], np.eye(3)):
+            raise ValueError("RotationMixture: the first discrete symmetry must be the identity")
+        self.continuous_axes = (
+            np.zeros((0, 3)) if continuous_axes is None else np.asarray(continuous_axes, float)
+        )
+        self.config = config or MixtureConfig()
+        self.components: list[RotationComponent] = []
+
+    @classmethod
+    def for_model(cls, model, config: MixtureConfig | None = None) -> RotationMixture:
+        discrete = np.concatenate([np.eye(4)[None], model.symmetries_discrete])
+        axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+        return cls(discrete, axes, config)
+
+    def add(self, R_world_obj: np.ndarray, confidence: float) -> int:
+        """Add one measurement; returns the index of the component that took it."""
+        if not (np.isfinite(confidence) and confidence > 0):
+            raise ValueError(f"rotation measurement: confidence must be > 0, got {confidence}")
+        R = np.asarray(R_world_obj, dtype=np.float64)
+        best, best_angle = -1, np.inf
+        for i, comp in enumerate(self.components):
+            _, angle = closest_equivalent(R, comp.R_world_obj, self.discrete, self.continuous_axes)
+            if angle < best_angle:
+                best, best_angle = i, angle
+        if best < 0 or best_angle > np.deg2rad(self.config.gate_deg):
+            self.components.append(RotationComponent(R.copy(), [(R.copy(), float(confidence))]))
+            best = len(self.components) - 1
+        else:
+            self.components[best].members.append((R.copy(), float(confidence)))
+        self._refine(self.components[best])
+        return best
+
+    @property
+    def weights(self) -> np.ndarray:
+        c = np.array([comp.confidence for comp in self.components])
+        return c / c.sum() if len(c) else c
+
+    def best(self) -> RotationComponent | None:
+        """The component with the largest weight (the earliest among equals)."""
+        if not self.components:
+            return None
+        return self.components[int(np.argmax(self.weights))]
+
+    def _refine(self, comp: RotationComponent) -> None:
+        cfg = self.config
+        R_mean = comp.R_world_obj
+        info_scale = 1.0 / np.deg2rad(cfg.sigma_deg) ** 2
+        for _ in range(cfg.max_iterations):
+            H = np.zeros((3, 3))
+            g = np.zeros(3)
+            for R_k, c in comp.members:
+                R_eq, _ = closest_equivalent(R_k, R_mean, self.discrete, self.continuous_axes)
+                r = so3_log(R_eq @ R_mean.T)
+                J = so3_right_jacobian_inv(r)
+                H += c * J.T @ J
+                g += c * J.T @ r
+            H += 1e-9 * np.eye(3)
+            delta = np.linalg.solve(H, g)
+            R_mean = so3_exp(delta) @ R_mean
+            if np.linalg.norm(delta) < cfg.tolerance_rad:
+                break
+        # re-orthonormalise against drift
+        U, _, Vt = np.linalg.svd(R_mean)
+        comp.R_world_obj = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+        cov = np.linalg.inv(H * info_scale)
+        for a in self.continuous_axes:
+            a_world = comp.R_world_obj @ a
+            P = np.eye(3) - np.outer(a_world, a_world)
+            cov = P @ cov @ P + UNIFORM_ANGLE_VAR * np.outer(a_world, a_world)
+        comp.cov = 0.5 * (cov + cov.T)
