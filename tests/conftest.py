@@ -25,3 +25,15 @@ def small_dataset_root(tmp_path_factory, robi_catalog):
         n_scenes=2, seed=11, camera=SMALL_CAMERA, scene=SceneSpec(n_instances=(6, 8), n_views=3)
     )
     return generate_dataset(robi_catalog, root, config, show_progress=False)
+
+
+@pytest.fixture(scope="session")
+def default_banks(robi_catalog, tmp_path_factory):
+    """Template banks of the committed catalog at the default parameters (~1 min to build)."""
+    from estimator.templates import build_template_bank
+
+    cache = tmp_path_factory.mktemp("templates")
+    return {
+        k: build_template_bank(m, cache_dir=cache, show_progress=False)
+        for k, m in robi_catalog.items()
+    }
