@@ -76,7 +76,7 @@ def test_mean_is_refined_across_symmetric_members(models):
     R_true = _random(5)
     S = gear.symmetry_transforms()[:, :3, :3]
     rng = np.random.default_rng(1)
-    for k in range(12):
+    for _ in range(12):
         sym = S[rng.integers(len(S))]
         mix.add(_rot(rng.normal(size=3), 6.0) @ R_true @ sym, 0.7)
     assert len(mix.components) == 1
