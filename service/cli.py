@@ -195,6 +195,25 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_templates(args: argparse.Namespace) -> int:
+    from estimator.objects import load_catalog
+    from estimator.templates import build_template_bank
+
+    catalog = load_catalog(args.catalog)
+    rows = [
+        "| obj_id | name | templates | size (KiB) | build (s) |",
+        "|---|---|---|---|---|",
+    ]
+    for obj_id, model in catalog.items():
+        bank = build_template_bank(model, cache_dir=args.cache, show_progress=not args.quiet)
+        rows.append(
+            f"| {obj_id} | {model.name} | {len(bank)} | {bank.nbytes / 1024:.0f} | "
+            f"{bank.build_seconds:.1f} |"
+        )
+    print("\n".join(rows))
+    return 0
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
@@ -288,6 +307,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--translation-only", action="store_true", help="skip the rotation step")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)
+
+    p = sub.add_parser(
+        "templates", help="build (or load from the cache) the LINE-2D templates of a catalog"
+    )
+    p.add_argument("--catalog", default=DEFAULT_CATALOG)
+    p.add_argument("--cache", help="cache folder (default $POSEFUSE_CACHE or ~/.cache/posefuse)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_templates)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)
