@@ -1,4 +1,7 @@
-"""Shared fixtures: a small rendered BOP dataset of the committed catalog."""
+"""Shared fixtures: a small rendered BOP dataset of the committed catalog, template banks."""
+
+import os
+import tempfile
 
 import numpy as np
 import pytest
@@ -8,6 +11,9 @@ from estimator.objects import load_catalog
 from service.cli import DEFAULT_CATALOG
 from sim.scenes import SceneSpec
 from sim.synth import SynthConfig, generate_dataset
+
+# one template cache for the whole test session, never the user's
+os.environ["POSEFUSE_CACHE"] = tempfile.mkdtemp(prefix="posefuse-test-cache-")
 
 SMALL_CAMERA = Camera(np.array([[462.0, 0, 320.0], [0, 462.0, 180.0], [0, 0, 1]]), 640, 360)
 
