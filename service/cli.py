@@ -8,10 +8,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from estimator.errors import PosefuseError
 
 # The procedural catalog committed with the project (found beside the packages in a checkout).
 DEFAULT_CATALOG = str(Path(__file__).resolve().parents[1] / "catalogs" / "robi_like")
+# The front end trained on it, shipped with the project.
+DEFAULT_MODEL = str(Path(__file__).resolve().parents[1] / "models" / "robi_like.onnx")
 
 
 def _cmd_catalog(args: argparse.Namespace) -> int:
@@ -115,8 +119,8 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     from estimator.run_dataset import CHECKPOINTS, run_dataset, summary_markdown, write_rows
     from estimator.tracker import MultiViewEstimator
 
-    if args.frontend != "oracle":
-        raise PosefuseError(f"--frontend: {args.frontend!r} is not available yet; use 'oracle'")
+    if args.frontend not in ("oracle", "network"):
+        raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
     dataset = load_dataset(args.dataset, split=args.split)
     rotation = not args.translation_only
     try:
@@ -140,9 +144,18 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     def factory():
         return MultiViewEstimator(dataset.catalog, banks=shared.banks())
 
+    if args.frontend == "network":
+        from estimator.frontend.network import NetworkFrontend
+        from estimator.run_dataset import LabelledNetworkFrontend
+
+        frontend = LabelledNetworkFrontend(
+            dataset, NetworkFrontend(args.model, dataset.catalog, seed=args.seed)
+        )
+    else:
+        frontend = OracleFrontend(dataset, oracle)
     run = run_dataset(
         dataset,
-        OracleFrontend(dataset, oracle),
+        frontend,
         scene_ids=scene_ids,
         show_progress=not args.quiet,
         rotation=rotation,
@@ -211,6 +224,78 @@ def _cmd_templates(args: argparse.Namespace) -> int:
             f"{bank.build_seconds:.1f} |"
         )
     print("\n".join(rows))
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise PosefuseError(
+            'training needs torch: pip install -e ".[train]" (a CPU build, torch==2.13.0)'
+        ) from None
+    from estimator.objects import load_catalog
+    from sim.train import TrainConfig, train
+
+    load_catalog(args.catalog)  # a CatalogError before any work
+    if not args.out.endswith(".onnx"):
+        raise PosefuseError(f"--out: {args.out!r} must end in .onnx")
+    config = TrainConfig(
+        n_scenes=args.scenes,
+        views_per_scene=args.views,
+        val_scenes=args.val_scenes,
+        minutes=args.minutes,
+        max_iterations=args.iterations,
+        batch=args.batch,
+        seed=args.seed,
+        workers=args.workers,
+    )
+    card = train(args.catalog, args.out, config)
+    print(json.dumps(card, indent=2))
+    print(f"wrote {args.out} and {Path(args.out).with_suffix('.json')}")
+    return 0
+
+
+def _cmd_eval_frontend(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.frontend.metrics import score_frontend
+    from estimator.frontend.network import NetworkFrontend
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    frontend = NetworkFrontend(args.model, dataset.catalog, threads=args.threads)
+    views = [v for v in dataset.views()][: args.max_views or None]
+
+    def detect(view):
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        return frontend.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+
+    score = score_frontend(dataset, detect, views, min_visib=args.min_visib)
+    print(score.to_markdown())
+    return 0
+
+
+def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
+    import cv2
+
+    from estimator.dataset import load_dataset
+    from estimator.frontend.network import NetworkFrontend
+    from sim.overlay import frontend_overlay
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    frontend = NetworkFrontend(args.model, dataset.catalog)
+    scene = dataset.scene(args.scene)
+    view = scene.view(args.im)
+    image = scene.load_rgb(args.im)
+    raw = frontend.infer(image)
+    dets = frontend.detect(image, stamp_seed=args.scene * 100_000 + args.im)
+    truth = [view.camera.project(g.T_cam_obj[:3, 3]) for g in view.gts if g.visib_fract > 0.1]
+    picture = frontend_overlay(image, raw, dets, frontend.card, np.array(truth).reshape(-1, 2))
+    if args.crop:
+        x, y, w, h = args.crop
+        picture = picture[y : y + h, x : x + w]
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(args.out, picture)
+    print(f"wrote {args.out}: {len(dets)} detections")
     return 0
 
 
@@ -298,7 +383,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", required=True)
     p.add_argument("--split", default="test")
     p.add_argument("--out", required=True, help="folder for the error tables")
-    p.add_argument("--frontend", default="oracle", help="oracle (detections from ground truth)")
+    p.add_argument(
+        "--frontend",
+        default="oracle",
+        help="oracle (noisy detections from the ground truth) or network (the learned model)",
+    )
+    p.add_argument("--model", default=DEFAULT_MODEL, help="ONNX model for --frontend network")
     p.add_argument("--scenes", type=int, nargs="+", help="only these scene ids")
     p.add_argument("--center-sigma", type=float, default=2.0, help="oracle center noise, px")
     p.add_argument("--drop-rate", type=float, default=0.1, help="oracle missed detections")
@@ -315,6 +405,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", help="cache folder (default $POSEFUSE_CACHE or ~/.cache/posefuse)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_templates)
+
+    p = sub.add_parser("train", help="train the center-voting front end on synthetic renders")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG)
+    p.add_argument("--out", required=True, help="models/NAME.onnx (its card NAME.json beside)")
+    p.add_argument("--scenes", type=int, default=400, help="training scenes to render")
+    p.add_argument("--views", type=int, default=4, help="views per training scene")
+    p.add_argument("--val-scenes", type=int, default=12)
+    p.add_argument("--minutes", type=float, default=40.0, help="training time budget")
+    p.add_argument("--iterations", type=int, default=100_000, help="at most this many steps")
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--workers", type=int, default=2, help="rendering processes")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval-frontend", help="recall, precision and center accuracy of a model")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--model", default=DEFAULT_MODEL)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--min-visib", type=float, default=0.75)
+    p.add_argument("--max-views", type=int, default=0, help="score only the first N views")
+    p.set_defaults(func=_cmd_eval_frontend)
+
+    p = sub.add_parser("frontend-overlay", help="draw the learned front end's output on a view")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--model", default=DEFAULT_MODEL)
+    p.add_argument("--scene", type=int, default=0)
+    p.add_argument("--im", type=int, default=0)
+    p.add_argument("--crop", type=int, nargs=4, metavar=("X", "Y", "W", "H"))
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=_cmd_frontend_overlay)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)

@@ -98,3 +98,67 @@ def write_gt_overlay(dataset, scene_id: int, im_id: int, out: str | Path) -> Pat
     out.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out), gt_overlay(dataset, scene_id, im_id))
     return out
+
+
+def frontend_overlay(
+    image_rgb: np.ndarray,
+    raw_output: np.ndarray,
+    detections,
+    card,
+    true_centers: np.ndarray | None = None,
+    arrow_step: int = 6,
+) -> np.ndarray:
+    """(H, W, 3) BGR picture of the learned front end on one image: predicted class masks
+    (tinted), the vector field (short arrows every ``arrow_step`` output pixels), the voted
+    centers with their 3-sigma ellipses (white) and the true centers (green crosses).
+
+    raw_output: (C + 3, h, w) network output; detections: list of Detection; card: ModelCard.
+    """
+    from estimator.frontend.network import output_to_image
+
+    image = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR).copy()
+    H, W = image.shape[:2]
+    n_classes = len(card.classes)
+    labels = np.argmax(raw_output[: n_classes + 1], axis=0)
+    vectors = raw_output[n_classes + 1 :]
+    big = cv2.resize(
+        labels.astype(np.uint8),
+        None,
+        fx=card.output_stride / card.input_scale,
+        fy=card.output_stride / card.input_scale,
+        interpolation=cv2.INTER_NEAREST,
+    )
+    big = big[:H, :W]
+    tint = image.copy()
+    for c in range(1, n_classes + 1):
+        tint[big == c] = _colour(c * 3)
+    image = cv2.addWeighted(image, 0.55, tint, 0.45, 0)
+    h, w = labels.shape
+    for y in range(0, h, arrow_step):
+        for x in range(0, w, arrow_step):
+            if labels[y, x] == 0:
+                continue
+            p = output_to_image(np.array([x, y], float), card)
+            q = p + vectors[:, y, x] * 10
+            cv2.arrowedLine(
+                image,
+                tuple(np.round(p).astype(int)),
+                tuple(np.round(q).astype(int)),
+                (255, 255, 255),
+                1,
+                cv2.LINE_AA,
+                tipLength=0.4,
+            )
+    if true_centers is not None:
+        for u, v in true_centers:
+            cv2.drawMarker(
+                image, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 14, 2
+            )
+    for d in detections:
+        evals, evecs = np.linalg.eigh(d.center_cov)
+        axes = tuple(int(max(1, round(3 * np.sqrt(e)))) for e in evals)
+        angle = float(np.degrees(np.arctan2(evecs[1, 0], evecs[0, 0])))
+        c = tuple(np.round(d.center_uv).astype(int))
+        cv2.ellipse(image, c, axes, angle, 0, 360, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.circle(image, c, 3, (0, 0, 255), -1, cv2.LINE_AA)
+    return image

@@ -40,8 +40,8 @@ def test_run_dataset_refuses_bad_settings(small_dataset_root, tmp_path, capsys):
     assert "drop_rate must be in [0, 1]" in capsys.readouterr().err
     assert main([*args, "--scenes", "9"]) == 2
     assert "no scene 9" in capsys.readouterr().err
-    assert main([*args, "--frontend", "network"]) == 2
-    assert "not available yet" in capsys.readouterr().err
+    assert main([*args, "--frontend", "magic"]) == 2
+    assert "'magic' is not known" in capsys.readouterr().err
 
 
 def test_both_steps_end_to_end_and_deterministic(small_dataset_root, default_banks):

@@ -1,0 +1,244 @@
+"""The learned front end: an ONNX center-voting network run with onnxruntime, then voting.
+
+A model ``NAME.onnx`` comes with its card ``NAME.json``: the classes (obj_id and name, in
+output order), a hash of the catalog it was trained for, the image size it expects, the input
+scale and normalisation, the output stride, the calibrated covariance scale of the voting, and
+how it was trained and measured. A model whose classes do not match the catalog is refused.
+
+Per image: resize by ``input_scale``, pad to a multiple of 16, normalise, run the network,
+label each output pixel with its most likely class, and vote for centers per class
+(:mod:`estimator.frontend.voting`). Centers, covariances, masks and boxes are returned in the
+image's own pixels.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from estimator.errors import PosefuseError
+from estimator.frontend.detection import Detection
+from estimator.frontend.voting import VotingConfig, vote_instances
+
+MEAN = (0.45, 0.45, 0.45)
+STD = (0.25, 0.25, 0.25)
+
+
+class ModelError(PosefuseError):
+    """A front-end model that is missing, unreadable or made for another catalog."""
+
+    def __init__(self, path: str | Path, reason: str):
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
+def catalog_hash(catalog) -> str:
+    """A hash of the catalog's classes and meshes (what a model was trained on)."""
+    h = hashlib.sha256()
+    for obj_id, model in sorted(catalog.items()):
+        h.update(f"{obj_id}:{model.name}:{model.diameter:.6f}".encode())
+        h.update(np.round(np.asarray(model.mesh.vertices), 6).tobytes())
+    return h.hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class ModelCard:
+    classes: tuple[tuple[int, str], ...]  # (obj_id, name) in output order
+    catalog_hash: str
+    image_size: tuple[int, int]  # (width, height) of the camera images it expects
+    input_scale: float  # network input = image resized by this
+    output_stride: int  # network output pixels per input pixel
+    mean: tuple[float, float, float] = MEAN
+    std: tuple[float, float, float] = STD
+    cov_scale: float = 1.0
+    extra: dict | None = None  # training data, metrics: free-form, for people
+
+    def to_json(self) -> dict:
+        return {
+            "classes": [{"obj_id": k, "name": n} for k, n in self.classes],
+            "catalog_hash": self.catalog_hash,
+            "image_size": list(self.image_size),
+            "input_scale": self.input_scale,
+            "output_stride": self.output_stride,
+            "normalisation": {"mean": list(self.mean), "std": list(self.std)},
+            "voting_cov_scale": self.cov_scale,
+            **(self.extra or {}),
+        }
+
+    @staticmethod
+    def from_json(data: dict, path: Path) -> ModelCard:
+        try:
+            known = {
+                "classes",
+                "catalog_hash",
+                "image_size",
+                "input_scale",
+                "output_stride",
+                "normalisation",
+                "voting_cov_scale",
+            }
+            return ModelCard(
+                classes=tuple((int(c["obj_id"]), str(c["name"])) for c in data["classes"]),
+                catalog_hash=str(data["catalog_hash"]),
+                image_size=(int(data["image_size"][0]), int(data["image_size"][1])),
+                input_scale=float(data["input_scale"]),
+                output_stride=int(data["output_stride"]),
+                mean=tuple(data["normalisation"]["mean"]),
+                std=tuple(data["normalisation"]["std"]),
+                cov_scale=float(data.get("voting_cov_scale", 1.0)),
+                extra={k: v for k, v in data.items() if k not in known},
+            )
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ModelError(path, f"model card is malformed ({exc!r})") from None
+
+
+def preprocess(image: np.ndarray, card: ModelCard) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (1, 3, H', W') float32, H' and W' multiples of 16."""
+    h, w = image.shape[:2]
+    sw, sh = round(w * card.input_scale), round(h * card.input_scale)
+    small = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA)
+    ph, pw = -sh % 16, -sw % 16
+    if ph or pw:
+        small = cv2.copyMakeBorder(small, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+    x = (small.astype(np.float32) / 255.0 - np.float32(card.mean)) / np.float32(card.std)
+    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+
+
+def output_to_image(xy_out: np.ndarray, card: ModelCard) -> np.ndarray:
+    """Output-grid pixel coordinates (..., 2) -> image pixel coordinates."""
+    xy_in = (xy_out + 0.5) * card.output_stride - 0.5
+    return (xy_in + 0.5) / card.input_scale - 0.5
+
+
+def load_card(model_path: str | Path) -> ModelCard:
+    model_path = Path(model_path)
+    card_path = model_path.with_suffix(".json")
+    if not model_path.is_file():
+        raise ModelError(model_path, "model file not found")
+    if not card_path.is_file():
+        raise ModelError(card_path, "model card not found (it lies beside the .onnx file)")
+    try:
+        data = json.loads(card_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelError(card_path, f"model card is not valid JSON ({exc})") from None
+    return ModelCard.from_json(data, card_path)
+
+
+class NetworkFrontend:
+    """Detections from the ONNX network and voting.
+
+    Args:
+        model_path: the .onnx file (its card beside it).
+        catalog: the object catalog; the model must have been trained for it.
+        threads: onnxruntime intra-op threads.
+        deterministic: sequential execution and deterministic kernels where available.
+    """
+
+    def __init__(
+        self,
+        model_path: str | Path,
+        catalog,
+        threads: int = 2,
+        deterministic: bool = True,
+        voting: VotingConfig | None = None,
+        seed: int = 0,
+    ):
+        import onnxruntime as ort
+
+        self.model_path = Path(model_path)
+        self.card = load_card(self.model_path)
+        classes = tuple((k, m.name) for k, m in sorted(catalog.items()))
+        if self.card.classes != classes or self.card.catalog_hash != catalog_hash(catalog):
+            raise ModelError(
+                self.model_path,
+                f"trained for classes {list(self.card.classes)} (catalog "
+                f"{self.card.catalog_hash}), but the catalog has {list(classes)} "
+                f"({catalog_hash(catalog)}); retrain it with posefuse train",
+            )
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+        if deterministic:
+            options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            options.add_session_config_entry("session.use_deterministic_compute", "1")
+        try:
+            self.session = ort.InferenceSession(
+                str(self.model_path), options, providers=["CPUExecutionProvider"]
+            )
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise ModelError(self.model_path, f"onnxruntime cannot load it ({exc})") from None
+        self.input_name = self.session.get_inputs()[0].name
+        base = voting or VotingConfig()
+        self.voting = VotingConfig(
+            base.n_hypotheses,
+            base.inlier_cos,
+            base.min_inliers,
+            base.max_instances,
+            self.card.cov_scale,
+            base.min_center_var,
+        )
+        self.seed = seed
+
+    def check_image(self, image: np.ndarray) -> None:
+        w, h = self.card.image_size
+        if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
+            raise ValueError("image: expected a uint8 numpy array")
+        if image.ndim != 3 or image.shape[2] != 3:
+            raise ValueError(f"image: expected (H, W, 3) RGB, got shape {image.shape}")
+        if image.shape[:2] != (h, w):
+            raise ValueError(
+                f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}"
+            )
+
+    def infer(self, image: np.ndarray) -> np.ndarray:
+        """(C + 3, h, w) raw output: class logits then the unit vectors."""
+        self.check_image(image)
+        return self.session.run(None, {self.input_name: preprocess(image, self.card)})[0][0]
+
+    def detect(self, image: np.ndarray, stamp_seed: int = 0) -> list[Detection]:
+        """Detections in one image (RGB uint8), in a fixed order (class, then votes)."""
+        out = self.infer(image)
+        n_classes = len(self.card.classes)
+        logits, vectors = out[: n_classes + 1], out[n_classes + 1 :]
+        labels = np.argmax(logits, axis=0)
+        e = np.exp(logits - logits.max(0, keepdims=True))
+        prob = e / e.sum(0, keepdims=True)
+        h_out, w_out = labels.shape
+        H, W = image.shape[:2]
+        ys, xs = np.mgrid[0:h_out, 0:w_out]
+        detections = []
+        rng = np.random.default_rng([self.seed, stamp_seed])
+        scale = 1.0 / (self.card.input_scale / self.card.output_stride)  # image px per out px
+        for c, (obj_id, _) in enumerate(self.card.classes, start=1):
+            sel = labels == c
+            if sel.sum() < self.voting.min_inliers:
+                continue
+            flat = np.flatnonzero(sel)
+            pix = np.stack([xs.reshape(-1)[flat], ys.reshape(-1)[flat]], 1).astype(np.float64)
+            vec = vectors.reshape(2, -1)[:, flat].T.astype(np.float64)
+            for inst in vote_instances(pix, vec, self.voting, rng):
+                mask_out = np.zeros(h_out * w_out, np.uint8)
+                mask_out[flat[inst.pixels]] = 1
+                mask_out = mask_out.reshape(h_out, w_out)
+                mask = cv2.resize(
+                    mask_out,
+                    (int(w_out * scale), int(h_out * scale)),
+                    interpolation=cv2.INTER_NEAREST,
+                )[:H, :W].astype(bool)
+                if mask.shape != (H, W):
+                    mask = np.pad(mask, ((0, H - mask.shape[0]), (0, W - mask.shape[1])))
+                ys_m, xs_m = np.nonzero(mask)
+                if len(xs_m) == 0:
+                    continue
+                bbox = np.array([xs_m.min(), ys_m.min(), np.ptp(xs_m) + 1, np.ptp(ys_m) + 1], float)
+                center = output_to_image(inst.center, self.card)
+                cov = inst.cov * scale**2
+                score = float(prob[c].reshape(-1)[flat[inst.pixels]].mean())
+                detections.append(Detection(obj_id, bbox, center, cov, mask, score))
+        return detections
