@@ -299,6 +299,130 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _settings(args: argparse.Namespace):
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    overrides = {}
+    for name in ("cell", "mode", "http_host", "http_port", "catalog", "model"):
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides[name] = value
+    if getattr(args, "listen", None):
+        overrides["listen"] = args.listen
+    if getattr(args, "connect", None):
+        overrides["connect"] = args.connect
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(x) for x in first["loc"])
+        raise PosefuseError(f"setting {field}: {first['msg']}") from None
+
+
+def _add_transport_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--cell", help="key prefix of the cell (default posefuse)")
+    p.add_argument("--mode", choices=["peer", "client"], help="zenoh mode (default peer)")
+    p.add_argument("--listen", nargs="+", help="zenoh listen endpoints, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--connect", nargs="+", help="zenoh endpoints to connect to")
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import threading
+
+    import uvicorn
+
+    from estimator.objects import load_catalog
+    from estimator.tracker import MultiViewEstimator
+    from service.api import create_app
+    from service.daemon import Daemon
+    from service.worker import EstimatorWorker, make_detector
+
+    settings = _settings(args)
+    catalog = load_catalog(settings.catalog)
+    detect = make_detector(settings, catalog)
+    estimator = MultiViewEstimator(catalog, show_progress=True)
+    for obj_id in catalog:  # templates before the first frame, not during it
+        estimator.matcher(obj_id)
+    daemon = Daemon(settings, EstimatorWorker(estimator, detect))
+    thread = threading.Thread(target=daemon.run, name="posefuse-daemon", daemon=True)
+    thread.start()
+    if not daemon.ready.wait(30):
+        raise PosefuseError("the Zenoh session did not open within 30 s")
+    print(
+        f"posefuse: cell {settings.cell!r}, zenoh {settings.mode} "
+        f"{' '.join(settings.listen + settings.connect)}; "
+        f"HTTP on http://{settings.http_host}:{settings.http_port} (/objects, /stats, /docs)",
+        flush=True,
+    )
+    try:
+        uvicorn.run(
+            create_app(daemon),
+            host=settings.http_host,
+            port=settings.http_port,
+            log_level="warning",
+        )
+    finally:
+        daemon.stop()
+        thread.join(timeout=10)
+    return 0
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    import zenoh
+    from tqdm import tqdm
+
+    from clients.camera import publish, scene_messages
+    from estimator.dataset import load_dataset
+    from service.settings import zenoh_config
+
+    settings = _settings(args)
+    if args.rate <= 0:
+        raise PosefuseError("--rate must be positive")
+    dataset = load_dataset(args.dataset, split=args.split)
+    dataset.scene(args.scene)  # a DatasetError naming a missing scene
+    messages = list(
+        scene_messages(
+            dataset,
+            args.scene,
+            settings.cell,
+            args.camera,
+            args.rate,
+            seed=args.seed,
+            max_views=args.views,
+        )
+    )
+    with zenoh.open(zenoh_config(settings)) as session:
+        time.sleep(args.warmup)  # let the transport connect before the first put
+        with tqdm(total=len(messages), desc="publish", unit="msg") as bar:
+            n = publish(session, messages, realtime=True, progress=lambda _k: bar.update(1))
+        time.sleep(0.5)
+    print(f"published {n} messages of scene {args.scene} on {settings.cell}/@v1/cam/{args.camera}")
+    return 0
+
+
+def _cmd_objects(args: argparse.Namespace) -> int:
+    from clients.query import objects_http, objects_zenoh, table
+
+    if args.zenoh:
+        import zenoh
+
+        from service.settings import zenoh_config
+
+        settings = _settings(args)
+        with zenoh.open(zenoh_config(settings)) as session:
+            time.sleep(args.warmup)
+            objects = objects_zenoh(session, settings.cell)
+    else:
+        try:
+            objects = objects_http(args.url)
+        except OSError as exc:
+            raise PosefuseError(f"{args.url}: {exc}") from None
+    print(json.dumps(objects, indent=2) if args.json else table(objects))
+    return 0
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
@@ -437,6 +561,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--crop", type=int, nargs=4, metavar=("X", "Y", "W", "H"))
     p.add_argument("--out", required=True)
     p.set_defaults(func=_cmd_frontend_overlay)
+
+    p = sub.add_parser("serve", help="run the estimator daemon on Zenoh with its HTTP API")
+    _add_transport_args(p)
+    p.add_argument("--http-host")
+    p.add_argument("--http-port", type=int)
+    p.add_argument("--catalog")
+    p.add_argument("--model")
+    p.set_defaults(func=_cmd_serve)
+
+    p = sub.add_parser("publish", help="publish a BOP scene as a camera would (info, JPEG, poses)")
+    _add_transport_args(p)
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--scene", type=int, default=0)
+    p.add_argument("--views", type=int, default=0, help="only the first N views")
+    p.add_argument("--rate", type=float, default=2.0, help="images per second")
+    p.add_argument("--camera", default="cam0", help="camera id in the keys")
+    p.add_argument("--seed", type=int, default=0, help="pose timing jitter")
+    p.add_argument("--warmup", type=float, default=1.0, help="seconds to connect first")
+    p.set_defaults(func=_cmd_publish)
+
+    p = sub.add_parser("objects", help="the current poses of a running daemon")
+    _add_transport_args(p)
+    p.add_argument("--url", default="http://127.0.0.1:8000")
+    p.add_argument("--zenoh", action="store_true", help="ask over Zenoh instead of HTTP")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--warmup", type=float, default=0.5)
+    p.set_defaults(func=_cmd_objects)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)

@@ -1,0 +1,93 @@
+"""A camera-side publisher: replays a BOP scene as a cell's camera would, over Zenoh.
+
+Camera info is published first (and again every ``info_every`` frames: it is latched by the
+daemon anyway); each view becomes a JPEG image stamped ``t0 + k / rate``. Camera poses come at
+another rate, with jitter: the camera dwells at each view (as a robot does for a picture), and
+its pose is published a few milliseconds before and after the image (random, seeded), plus one
+pose half-way to the next view, so the daemon has to buffer and interpolate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from service.codec import encode_camera_info, encode_camera_pose, encode_image
+from service.keys import Keys
+from service.sync import interpolate_pose
+
+
+def scene_messages(
+    dataset,
+    scene_id: int,
+    cell: str = "posefuse",
+    cam_id: str = "cam0",
+    rate_hz: float = 2.0,
+    t0_ns: int = 1_000_000_000_000,
+    seed: int = 0,
+    jpeg_quality: int = 90,
+    info_every: int = 4,
+    max_views: int = 0,
+) -> Iterator[tuple[float, str, bytes]]:
+    """(send time offset s, key, payload) in publication order."""
+    keys = Keys(cell)
+    scene = dataset.scene(scene_id)
+    rng = np.random.default_rng([seed, scene_id])
+    period = int(1e9 / rate_hz)
+    im_ids = scene.im_ids[: max_views or None]
+    views = [scene.view(i) for i in im_ids]
+    for k, view in enumerate(views):
+        stamp = t0_ns + k * period
+        offset = k / rate_hz
+        if k % info_every == 0:
+            yield (
+                offset,
+                keys.camera(cam_id, "info"),
+                encode_camera_info(stamp, cam_id, view.camera),
+            )
+        before = int(rng.uniform(5e6, 30e6))
+        after = int(rng.uniform(5e6, 30e6))
+        yield (
+            offset,
+            keys.camera(cam_id, "pose"),
+            encode_camera_pose(stamp - before, cam_id, view.T_world_cam),
+        )
+        image = scene.load_rgb(view.im_id)
+        yield (
+            offset,
+            keys.camera(cam_id, "image"),
+            encode_image(stamp, cam_id, image, "jpeg", jpeg_quality),
+        )
+        yield (
+            offset + after / 1e9,
+            keys.camera(cam_id, "pose"),
+            encode_camera_pose(stamp + after, cam_id, view.T_world_cam),
+        )
+        if k + 1 < len(views):
+            mid = stamp + period // 2
+            T_mid = interpolate_pose(
+                stamp, view.T_world_cam, stamp + period, views[k + 1].T_world_cam, mid
+            )
+            yield (
+                offset + 0.5 / rate_hz,
+                keys.camera(cam_id, "pose"),
+                encode_camera_pose(mid, cam_id, T_mid),
+            )
+
+
+def publish(session, messages, realtime: bool = True, progress=None) -> int:
+    """Put the messages on the session, paced by their offsets when ``realtime``."""
+    start = time.monotonic()
+    n = 0
+    for offset, key, payload in messages:
+        if realtime:
+            delay = start + offset - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        session.put(key, payload)
+        n += 1
+        if progress:
+            progress(key)
+    return n

@@ -1,0 +1,44 @@
+"""Query the current poses of a running daemon: over HTTP or with a Zenoh get."""
+
+from __future__ import annotations
+
+import json
+import urllib.request
+
+import msgpack
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def objects_http(base_url: str, timeout: float = 5.0) -> list[dict]:
+    with urllib.request.urlopen(f"{base_url.rstrip('/')}/objects", timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list[dict]:
+    from service.keys import Keys
+
+    key = Keys(cell).state
+    for reply in session.get(key, timeout=timeout):
+        if reply.ok is not None:
+            msg = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+            return list(msg.get("objects", []))
+    raise TimeoutError(f"no reply on {key}: is the daemon running?")
+
+
+def table(objects: list[dict]) -> str:
+    lines = [
+        f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5}  "
+        f"{'x':>8} {'y':>8} {'z':>8}  {'roll':>7} {'pitch':>7} {'yaw':>7}  {'sigma_t mm':>10}"
+    ]
+    for o in objects:
+        rpy = Rotation.from_quat(o["q"]).as_euler("xyz", degrees=True)
+        cov = np.array(o["cov"]).reshape(6, 6)
+        sigma = np.sqrt(np.trace(cov[:3, :3])) * 1000
+        t = o["t"]
+        lines.append(
+            f"{o['object_id']:<18} {o['status']:<10} {o['n_views']:>5} {o['confidence']:>5.2f}  "
+            f"{t[0]:>8.4f} {t[1]:>8.4f} {t[2]:>8.4f}  {rpy[0]:>7.1f} {rpy[1]:>7.1f} "
+            f"{rpy[2]:>7.1f}  {sigma:>10.2f}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,329 @@
+"""The wire messages (DESIGN section 4): msgpack maps with ``"v": 1``, validated on decoding.
+
+This is the only module that turns bytes into messages and messages into bytes. Every decoder
+checks types, sizes and finiteness, that rotations are rotations, and the payload size; a bad
+message raises :class:`DecodeError` naming the field, and nothing else.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import msgpack
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from estimator.camera import Camera
+from estimator.errors import PosefuseError
+
+VERSION = 1
+ENCODINGS = ("jpeg", "png", "mono8", "rgb8", "bgr8")
+MAX_IMAGE_SIDE = 8192
+DEFAULT_MAX_PAYLOAD = 16 * 1024 * 1024
+
+
+class DecodeError(PosefuseError):
+    """A message that cannot be used: which kind, and why."""
+
+    def __init__(self, kind: str, reason: str):
+        self.kind = kind
+        self.reason = reason
+        super().__init__(f"{kind}: {reason}")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraInfoMsg:
+    stamp_ns: int
+    frame_id: str
+    camera: Camera
+
+
+@dataclass(frozen=True, eq=False)
+class ImageMsg:
+    """image: (H, W, 3) uint8 RGB, decoded."""
+
+    stamp_ns: int
+    frame_id: str
+    image: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPoseMsg:
+    """T_world_cam: (4, 4) metres (the pose of frame_id in parent_frame)."""
+
+    stamp_ns: int
+    frame_id: str
+    parent_frame: str
+    T_world_cam: np.ndarray
+
+
+@dataclass(frozen=True)
+class ResetRequest:
+    class_id: int | None = None
+    object_id: str | None = None
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _unpack(payload: bytes, kind: str, max_bytes: int) -> dict:
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise DecodeError(kind, "payload must be bytes")
+    if len(payload) > max_bytes:
+        raise DecodeError(kind, f"payload of {len(payload)} bytes exceeds {max_bytes}")
+    try:
+        msg = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise DecodeError(kind, f"not msgpack ({type(exc).__name__})") from None
+    if not isinstance(msg, dict):
+        raise DecodeError(kind, "not a map")
+    if msg.get("v") != VERSION:
+        raise DecodeError(kind, f"field 'v' must be {VERSION}, got {msg.get('v')!r}")
+    return msg
+
+
+def _int(msg: dict, key: str, kind: str, lo: int = 0, hi: int = 2**63 - 1) -> int:
+    v = msg.get(key)
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        raise DecodeError(kind, f"field {key!r} must be an integer in [{lo}, {hi}]")
+    return v
+
+
+def _str(msg: dict, key: str, kind: str, max_len: int = 256, default: str | None = None) -> str:
+    v = msg.get(key, default)
+    if not isinstance(v, str) or len(v) > max_len:
+        raise DecodeError(kind, f"field {key!r} must be a string of at most {max_len} characters")
+    return v
+
+
+def _floats(msg: dict, key: str, kind: str, n: int | None = None, max_n: int = 64) -> np.ndarray:
+    v = msg.get(key)
+    if not isinstance(v, (list, tuple)) or len(v) > max_n or (n is not None and len(v) != n):
+        raise DecodeError(kind, f"field {key!r} must be a list of {n or f'<= {max_n}'} numbers")
+    if not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        raise DecodeError(kind, f"field {key!r} must hold numbers only")
+    a = np.asarray(v, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise DecodeError(kind, f"field {key!r} must be finite")
+    return a
+
+
+# ---------------------------------------------------------------------------- decoders
+
+
+def decode_camera_info(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> CameraInfoMsg:
+    kind = "CameraInfo"
+    msg = _unpack(payload, kind, max_bytes)
+    stamp = _int(msg, "stamp_ns", kind)
+    frame_id = _str(msg, "frame_id", kind)
+    width = _int(msg, "width", kind, 1, MAX_IMAGE_SIDE)
+    height = _int(msg, "height", kind, 1, MAX_IMAGE_SIDE)
+    K = _floats(msg, "K", kind, 9)
+    model = _str(msg, "distortion_model", kind, 32, "plumb_bob")
+    D = _floats({"D": msg.get("D", [])}, "D", kind, max_n=8)
+    if model not in ("plumb_bob", "none", ""):
+        raise DecodeError(kind, f"distortion_model {model!r} is not supported (use plumb_bob)")
+    if len(D) > 5:
+        if np.any(D[5:] != 0):
+            raise DecodeError(kind, "only 5 plumb_bob coefficients are supported")
+        D = D[:5]
+    try:
+        camera = Camera(K.reshape(3, 3), width, height, D if len(D) else None)
+    except ValueError as exc:
+        raise DecodeError(kind, str(exc)) from None
+    return CameraInfoMsg(stamp, frame_id, camera)
+
+
+def decode_image(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> ImageMsg:
+    kind = "Image"
+    msg = _unpack(payload, kind, max_bytes)
+    stamp = _int(msg, "stamp_ns", kind)
+    frame_id = _str(msg, "frame_id", kind)
+    encoding = _str(msg, "encoding", kind, 16)
+    width = _int(msg, "width", kind, 1, MAX_IMAGE_SIDE)
+    height = _int(msg, "height", kind, 1, MAX_IMAGE_SIDE)
+    data = msg.get("data")
+    if not isinstance(data, (bytes, bytearray)):
+        raise DecodeError(kind, "field 'data' must be bytes")
+    if encoding not in ENCODINGS:
+        raise DecodeError(kind, f"encoding {encoding!r} is not one of {list(ENCODINGS)}")
+    if encoding in ("jpeg", "png"):
+        buf = np.frombuffer(data, np.uint8)
+        image = cv2.imdecode(buf, cv2.IMREAD_COLOR) if len(buf) else None
+        if image is None:
+            raise DecodeError(kind, f"data is not a decodable {encoding} image")
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    else:
+        channels = 1 if encoding == "mono8" else 3
+        if len(data) != width * height * channels:
+            raise DecodeError(
+                kind, f"{encoding} data has {len(data)} bytes, expected {width * height * channels}"
+            )
+        image = np.frombuffer(data, np.uint8).reshape(height, width, channels)
+        if encoding == "mono8":
+            image = np.repeat(image, 3, axis=2)
+        elif encoding == "bgr8":
+            image = image[..., ::-1]
+        image = np.ascontiguousarray(image)
+    if image.shape[:2] != (height, width):
+        raise DecodeError(
+            kind, f"image is {image.shape[1]}x{image.shape[0]}, the message says {width}x{height}"
+        )
+    return ImageMsg(stamp, frame_id, image)
+
+
+def decode_camera_pose(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> CameraPoseMsg:
+    kind = "CameraPose"
+    msg = _unpack(payload, kind, max_bytes)
+    stamp = _int(msg, "stamp_ns", kind)
+    frame_id = _str(msg, "frame_id", kind)
+    parent = _str(msg, "parent_frame", kind, default="world")
+    t = _floats(msg, "t", kind, 3)
+    q = _floats(msg, "q", kind, 4)
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-3:
+        raise DecodeError(kind, f"q must be a unit quaternion [x, y, z, w], |q| = {norm:.6g}")
+    if np.linalg.norm(t) > 1e4:
+        raise DecodeError(kind, "t is more than 10 km from the origin")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
+    T[:3, 3] = t
+    return CameraPoseMsg(stamp, frame_id, parent, T)
+
+
+def decode_reset(payload: bytes | None, max_bytes: int = 4096) -> ResetRequest:
+    """An empty payload resets everything; otherwise {v, class_id?} or {v, object_id?}."""
+    kind = "Reset"
+    if payload is None or len(payload) == 0:
+        return ResetRequest()
+    msg = _unpack(payload, kind, max_bytes)
+    class_id = msg.get("class_id")
+    object_id = msg.get("object_id")
+    if class_id is not None and (not isinstance(class_id, int) or isinstance(class_id, bool)):
+        raise DecodeError(kind, "class_id must be an integer")
+    if object_id is not None and not isinstance(object_id, str):
+        raise DecodeError(kind, "object_id must be a string")
+    if class_id is not None and object_id is not None:
+        raise DecodeError(kind, "give class_id or object_id, not both")
+    return ResetRequest(class_id, object_id)
+
+
+# ---------------------------------------------------------------------------- encoders
+
+
+def _pack(msg: dict) -> bytes:
+    return msgpack.packb({"v": VERSION, **msg}, use_bin_type=True)
+
+
+def encode_camera_info(stamp_ns: int, frame_id: str, camera: Camera) -> bytes:
+    return _pack(
+        {
+            "stamp_ns": int(stamp_ns),
+            "frame_id": frame_id,
+            "width": int(camera.width),
+            "height": int(camera.height),
+            "K": [float(x) for x in camera.K.reshape(-1)],
+            "D": [float(x) for x in camera.dist],
+            "distortion_model": "plumb_bob",
+        }
+    )
+
+
+def encode_image(
+    stamp_ns: int, frame_id: str, image_rgb: np.ndarray, encoding: str = "jpeg", quality: int = 90
+) -> bytes:
+    h, w = image_rgb.shape[:2]
+    if encoding == "jpeg":
+        ok, buf = cv2.imencode(
+            ".jpg", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality]
+        )
+        data = buf.tobytes()
+    elif encoding == "png":
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+        data = buf.tobytes()
+    elif encoding == "rgb8":
+        data = np.ascontiguousarray(image_rgb).tobytes()
+    else:
+        raise ValueError(f"encode_image: unsupported encoding {encoding!r}")
+    return _pack(
+        {
+            "stamp_ns": int(stamp_ns),
+            "frame_id": frame_id,
+            "encoding": encoding,
+            "width": int(w),
+            "height": int(h),
+            "data": data,
+        }
+    )
+
+
+def encode_camera_pose(
+    stamp_ns: int, frame_id: str, T_world_cam: np.ndarray, parent_frame: str = "world"
+) -> bytes:
+    q = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat()
+    return _pack(
+        {
+            "stamp_ns": int(stamp_ns),
+            "frame_id": frame_id,
+            "parent_frame": parent_frame,
+            "t": [float(x) for x in T_world_cam[:3, 3]],
+            "q": [float(x) for x in q],
+        }
+    )
+
+
+def estimate_to_dict(e) -> dict:
+    """An estimator.tracker.ObjectEstimate as the ObjectEstimate map of the wire (JSON-safe)."""
+    q = Rotation.from_matrix(e.T_world_obj[:3, :3]).as_quat()
+    return {
+        "v": VERSION,
+        "stamp_ns": int(e.stamp_ns),
+        "object_id": e.object_id,
+        "class_id": int(e.class_id),
+        "class_name": e.class_name,
+        "frame_id": e.frame_id,
+        "t": [float(x) for x in e.T_world_obj[:3, 3]],
+        "q": [float(x) for x in q],
+        "cov": [float(x) for x in e.cov.reshape(-1)],
+        "confidence": float(e.confidence),
+        "hypotheses": [
+            {"q": [float(x) for x in h.q], "weight": float(h.weight), "n": int(h.n)}
+            for h in e.hypotheses
+        ],
+        "n_views": int(e.n_views),
+        "status": e.status,
+    }
+
+
+def encode_estimate(e) -> bytes:
+    return msgpack.packb(estimate_to_dict(e), use_bin_type=True)
+
+
+def encode_estimates(estimates) -> bytes:
+    return msgpack.packb(
+        {"v": VERSION, "objects": [estimate_to_dict(e) for e in estimates]}, use_bin_type=True
+    )
+
+
+def decode_estimate(payload: bytes) -> dict:
+    """An ObjectEstimate map (validated for the fields a client relies on)."""
+    kind = "ObjectEstimate"
+    msg = _unpack(payload, kind, DEFAULT_MAX_PAYLOAD)
+    _str(msg, "object_id", kind)
+    _floats(msg, "t", kind, 3)
+    _floats(msg, "q", kind, 4)
+    _floats(msg, "cov", kind, 36)
+    if not math.isfinite(float(msg.get("confidence", float("nan")))):
+        raise DecodeError(kind, "confidence must be finite")
+    return msg
+
+
+def encode_reset(class_id: int | None = None, object_id: str | None = None) -> bytes:
+    msg = {}
+    if class_id is not None:
+        msg["class_id"] = int(class_id)
+    if object_id is not None:
+        msg["object_id"] = object_id
+    return _pack(msg)

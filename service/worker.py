@@ -1,0 +1,96 @@
+"""The one function that turns a synchronised frame into estimates, shared by the daemon and by
+offline replay, and the state the HTTP API and the queryables read.
+
+``EstimatorWorker.process`` runs the front end and the estimator on one frame; it is only ever
+called from one thread, in stamp order. ``snapshot`` is an immutable copy of the current
+estimates that readers on other threads take without blocking the worker for long.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate
+from service.sync import SyncedFrame
+
+
+@dataclass
+class Stats:
+    received: dict[str, int] = field(default_factory=dict)  # per key
+    decode_errors: dict[str, int] = field(default_factory=dict)  # per key
+    processed: int = 0
+    errors: int = 0
+    latencies_ms: deque = field(default_factory=lambda: deque(maxlen=1000))
+
+    def count(self, table: dict[str, int], key: str) -> None:
+        table[key] = table.get(key, 0) + 1
+
+    def latency(self) -> dict[str, float | None]:
+        if not self.latencies_ms:
+            return {"p50_ms": None, "p95_ms": None}
+        a = np.array(self.latencies_ms)
+        return {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95))}
+
+
+class EstimatorWorker:
+    """Front end + estimator; the current estimates behind a lock for readers.
+
+    Args:
+        estimator: the MultiViewEstimator (owned by this worker).
+        detect: image (H, W, 3) uint8 RGB, stamp_ns -> list of Detection.
+    """
+
+    def __init__(self, estimator: MultiViewEstimator, detect):
+        self.estimator = estimator
+        self.detect = detect
+        self._lock = threading.Lock()
+        self._snapshot: dict[str, ObjectEstimate] = {}
+        self.stats = Stats()
+
+    def process(self, frame: SyncedFrame) -> list[ObjectEstimate]:
+        detections = self.detect(frame.image, frame.stamp_ns)
+        with self._lock:
+            updated = self.estimator.update(
+                Frame(
+                    frame.stamp_ns, frame.camera, frame.T_world_cam, frame.image, frame.camera_id
+                ),
+                detections,
+            )
+            self._snapshot = {e.object_id: e for e in self.estimator.estimates()}
+            self.stats.processed += 1
+        return updated
+
+    def snapshot(self) -> list[ObjectEstimate]:
+        with self._lock:
+            return [self._snapshot[k] for k in sorted(self._snapshot)]
+
+    def get(self, object_id: str) -> ObjectEstimate | None:
+        with self._lock:
+            return self._snapshot.get(object_id)
+
+    def reset(self, class_id: int | None = None, object_id: str | None = None) -> int:
+        """Forget tracks; KeyError for an unknown object, ValueError for an unknown class."""
+        with self._lock:
+            if class_id is not None and class_id not in self.estimator.catalog:
+                raise ValueError(f"unknown class_id {class_id}")
+            n = self.estimator.reset(class_id=class_id, object_id=object_id)
+            self._snapshot = {e.object_id: e for e in self.estimator.estimates()}
+            return n
+
+
+def make_detector(settings, catalog):
+    """The front end of the settings: the ONNX network of ``settings.model``."""
+    from estimator.frontend.network import NetworkFrontend
+
+    network = NetworkFrontend(settings.model, catalog, threads=settings.onnx_threads)
+    return lambda image, stamp_ns: network.detect(image, stamp_seed=stamp_ns)
+
+
+def now_ns() -> int:
+    """Wall-clock time for latency statistics only (never given to the estimator)."""
+    return time.time_ns()

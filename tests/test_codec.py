@@ -1,0 +1,101 @@
+"""Wire messages: round trips, and one clear DecodeError for every kind of bad input."""
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.codec import (
+    DecodeError,
+    decode_camera_info,
+    decode_camera_pose,
+    decode_image,
+    decode_reset,
+    encode_camera_info,
+    encode_camera_pose,
+    encode_image,
+    encode_reset,
+)
+from sim.scenes import REALSENSE_1280x720 as CAM
+
+
+def _pack(d):
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def test_round_trips():
+    info = decode_camera_info(encode_camera_info(5, "cam0", CAM))
+    np.testing.assert_allclose(info.camera.K, CAM.K)
+    assert (info.camera.width, info.camera.height, info.stamp_ns) == (1280, 720, 5)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    T[:3, 3] = [0.1, 0.2, 0.7]
+    pose = decode_camera_pose(encode_camera_pose(7, "cam0", T))
+    np.testing.assert_allclose(pose.T_world_cam, T, atol=1e-12)
+    image = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    for enc in ("png", "rgb8"):
+        back = decode_image(encode_image(9, "cam0", image, enc))
+        np.testing.assert_array_equal(back.image, image)
+    jpeg = decode_image(encode_image(9, "cam0", image, "jpeg"))
+    assert jpeg.image.shape == image.shape
+    assert decode_reset(encode_reset(class_id=3)).class_id == 3
+    assert decode_reset(b"").class_id is None
+
+
+GOOD_POSE = {"v": 1, "stamp_ns": 1, "frame_id": "c", "t": [0, 0, 0], "q": [0, 0, 0, 1]}
+
+
+@pytest.mark.parametrize(
+    "payload, reason",
+    [
+        (b"\xc1garbage", "not msgpack"),
+        (_pack([1, 2, 3]), "not a map"),
+        (_pack({**GOOD_POSE, "v": 2}), "'v' must be 1"),
+        (_pack({**GOOD_POSE, "stamp_ns": -1}), "stamp_ns"),
+        (_pack({**GOOD_POSE, "stamp_ns": "now"}), "stamp_ns"),
+        (_pack({**GOOD_POSE, "t": [0, 0]}), "'t' must be a list of 3"),
+        (_pack({**GOOD_POSE, "t": [0, math.nan, 0]}), "finite"),
+        (_pack({**GOOD_POSE, "t": [0, math.inf, 0]}), "finite"),
+        (_pack({**GOOD_POSE, "q": [0, 0, 0, 2]}), "unit quaternion"),
+        (_pack({**GOOD_POSE, "q": [0, 0, 0, 0]}), "unit quaternion"),
+        (_pack({**GOOD_POSE, "q": ["a", 0, 0, 1]}), "numbers only"),
+        (_pack({**GOOD_POSE, "frame_id": 3}), "frame_id"),
+    ],
+)
+def test_bad_poses(payload, reason):
+    with pytest.raises(DecodeError, match=reason):
+        decode_camera_pose(payload)
+
+
+def test_bad_images_and_infos():
+    good = {
+        "v": 1,
+        "stamp_ns": 1,
+        "frame_id": "c",
+        "encoding": "rgb8",
+        "width": 4,
+        "height": 2,
+        "data": bytes(24),
+    }
+    assert decode_image(_pack(good)).image.shape == (2, 4, 3)
+    with pytest.raises(DecodeError, match="expected 24"):
+        decode_image(_pack({**good, "data": bytes(23)}))
+    with pytest.raises(DecodeError, match="encoding"):
+        decode_image(_pack({**good, "encoding": "yuv"}))
+    with pytest.raises(DecodeError, match="decodable jpeg"):
+        decode_image(_pack({**good, "encoding": "jpeg", "data": b"\xff\xd8nope"}))
+    with pytest.raises(DecodeError, match="width"):
+        decode_image(_pack({**good, "width": 100_000}))
+    with pytest.raises(DecodeError, match="exceeds"):
+        decode_image(_pack(good), max_bytes=10)
+    info = msgpack.unpackb(encode_camera_info(1, "c", CAM))
+    with pytest.raises(DecodeError, match="'K' must be a list of 9"):
+        decode_camera_info(_pack({**info, "K": [1, 2, 3]}))
+    with pytest.raises(DecodeError, match="fx,fy>0"):
+        decode_camera_info(_pack({**info, "K": [0, 0, 640, 0, 924, 360, 0, 0, 1]}))
+    with pytest.raises(DecodeError, match="distortion_model"):
+        decode_camera_info(_pack({**info, "distortion_model": "fisheye"}))
+    with pytest.raises(DecodeError, match="not both"):
+        decode_reset(_pack({"v": 1, "class_id": 1, "object_id": "a"}))
