@@ -1,0 +1,18 @@
+# The posefuse estimator (also used for the replaying camera client in docker-compose.yml).
+FROM python:3.11-slim
+RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY estimator estimator
+COPY sim sim
+COPY service service
+COPY clients clients
+COPY bench bench
+COPY catalogs catalogs
+COPY models models
+RUN pip install --no-cache-dir -e .
+# template banks are built at start-up into this cache; mount a volume to keep them
+ENV POSEFUSE_CACHE=/cache
+EXPOSE 8000
+CMD ["posefuse", "serve", "--mode", "client", "--connect", "tcp/router:7447", "--http-host", "0.0.0.0"]

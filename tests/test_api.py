@@ -1,0 +1,78 @@
+"""The HTTP API through TestClient, over a daemon whose worker saw a synthetic sequence."""
+
+import json
+
+import pytest
+from fastapi.testclient import TestClient
+
+from estimator.tracker import MultiViewEstimator
+from service.api import create_app
+from service.daemon import Daemon
+from service.settings import Settings
+from service.sync import SyncedFrame
+from service.worker import EstimatorWorker
+from sim.scenes import SceneSpec
+from sim.sequences import make_sequence
+
+
+@pytest.fixture()
+def daemon(robi_catalog):
+    seq = make_sequence(robi_catalog, 5, SceneSpec(n_views=4))
+    by_stamp = {v.frame.stamp_ns: v.detections for v in seq.views}
+    worker = EstimatorWorker(
+        MultiViewEstimator(robi_catalog), lambda image, stamp: by_stamp[stamp]
+    )
+    d = Daemon(Settings(), worker)
+    for v in seq.views:
+        f = v.frame
+        worker.process(SyncedFrame("cam0", f.stamp_ns, None, f.camera, f.T_world_cam))
+    return d
+
+
+def test_health_ready_objects(daemon):
+    client = TestClient(create_app(daemon))
+    assert client.get("/healthz").json() == {"status": "ok"}
+    assert client.get("/readyz").status_code == 503
+    daemon.ready.set()
+    assert client.get("/readyz").status_code == 200
+    objects = client.get("/objects").json()
+    assert len(objects) >= 3
+    one = objects[0]
+    assert set(one) >= {"object_id", "t", "q", "cov", "confidence", "n_views", "status"}
+    assert len(one["cov"]) == 36 and len(one["q"]) == 4
+    assert client.get(f"/objects/{one['object_id']}").json()["t"] == one["t"]
+    assert client.get("/objects/nope-999").status_code == 404
+
+
+def test_reset_and_stats(daemon):
+    client = TestClient(create_app(daemon))
+    objects = client.get("/objects").json()
+    first = objects[0]["object_id"]
+    assert client.post("/reset", json={"object_id": first}).json() == {"removed": 1}
+    assert client.post("/reset", json={"object_id": first}).status_code == 404
+    assert client.post("/reset", json={"class_id": 1, "object_id": "x"}).status_code == 422
+    assert client.post("/reset", json={"class_id": 99}).status_code == 422
+    n_left = len(client.get("/objects").json())
+    assert client.post("/reset").json() == {"removed": n_left}
+    assert client.get("/objects").json() == []
+    stats = client.get("/stats").json()
+    assert stats["frames_processed"] == 4 and "latency" in stats and "decode_errors" in stats
+
+
+def test_events_stream(daemon):
+    client = TestClient(create_app(daemon))
+    q = daemon.subscribe()
+    daemon.unsubscribe(q)
+    # one reset event queued before the stream reads it
+    with client.stream("GET", "/events", params={"max_events": 1}) as response:
+        daemon.reset()
+        body = "".join(response.iter_text())
+    assert "event: reset" in body
+    data = json.loads(body.split("data: ")[1].strip())
+    assert data["reset"]["removed"] >= 1
+
+
+def test_openapi_has_examples(daemon):
+    spec = TestClient(create_app(daemon)).get("/openapi.json").json()
+    assert "/objects/{object_id}" in spec["paths"]
+    assert "examples" in json.dumps(spec["components"]["schemas"]["ObjectEstimateModel"])
