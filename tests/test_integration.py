@@ -1,0 +1,214 @@
+"""Daemon and camera client as separate processes over loopback Zenoh, with the HTTP API.
+
+Pose updates arrive over Zenoh and over HTTP; reset works over both (and shows on the SSE
+stream); the daemon's estimates equal an offline run of the same messages through the same
+worker function.
+"""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+
+import msgpack
+import numpy as np
+import pytest
+
+from clients.camera import scene_messages
+from estimator.dataset import load_dataset
+from estimator.tracker import MultiViewEstimator
+from service.cli import DEFAULT_MODEL
+from service.codec import decode_camera_info, decode_camera_pose, decode_image, estimate_to_dict
+from service.sync import FrameSynchronizer
+from service.worker import EstimatorWorker
+
+N_VIEWS = 4
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(url, timeout=5.0):
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def _post(url, body):
+    req = urllib.request.Request(
+        url,
+        data=json.dumps(body).encode(),
+        method="POST",
+        headers={"Content-Type": "application/json"},
+    )
+    with urllib.request.urlopen(req, timeout=5) as r:
+        return json.loads(r.read())
+
+
+@pytest.fixture(scope="module")
+def full_res_dataset(tmp_path_factory, robi_catalog):
+    from sim.scenes import SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    root = tmp_path_factory.mktemp("full") / "bin"
+    config = SynthConfig(n_scenes=1, seed=77, scene=SceneSpec(n_instances=(6, 8), n_views=N_VIEWS))
+    return generate_dataset(robi_catalog, root, config, show_progress=False)
+
+
+def _offline(dataset, messages):
+    """The same messages through the daemon's decoder, synchroniser and worker, in order."""
+    from estimator.frontend.network import NetworkFrontend
+
+    network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
+    worker = EstimatorWorker(
+        MultiViewEstimator(dataset.catalog),
+        lambda image, stamp: network.detect(image, stamp_seed=stamp),
+    )
+    sync = FrameSynchronizer()
+    decoders = {
+        "info": (decode_camera_info, sync.add_info),
+        "pose": (decode_camera_pose, sync.add_pose),
+        "image": (decode_image, sync.add_image),
+    }
+    for _, key, payload in messages:
+        kind = key.rsplit("/", 1)[1]
+        decode, add = decoders[kind]
+        add("cam0", decode(payload))
+        while (frame := sync.pop()) is not None:
+            worker.process(frame)
+    return {e.object_id: estimate_to_dict(e) for e in worker.snapshot()}
+
+
+def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_path):
+    import zenoh
+
+    zport, hport = _free_port(), _free_port()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    daemon = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--http-port",
+            str(hport),
+            "--cell",
+            "itest",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
+    base = f"http://127.0.0.1:{hport}"
+    try:
+        deadline = time.time() + 180
+        while True:
+            try:
+                if _get(f"{base}/readyz", 1)["status"] == "ready":
+                    break
+            except OSError:
+                pass
+            if daemon.poll() is not None or time.time() > deadline:
+                raise AssertionError(f"daemon did not start:\n{daemon.stdout.read()}")
+            time.sleep(0.5)
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+        updates = []
+        with zenoh.open(conf) as session:
+            sub = session.declare_subscriber(
+                "itest/@v1/objects/*",
+                lambda s: updates.append(msgpack.unpackb(s.payload.to_bytes())),
+            )
+            publisher = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "publish",
+                    "--dataset",
+                    str(full_res_dataset),
+                    "--scene",
+                    "0",
+                    "--rate",
+                    "4",
+                    "--cell",
+                    "itest",
+                    "--connect",
+                    f"tcp/127.0.0.1:{zport}",
+                    "--listen",
+                    f"tcp/127.0.0.1:{_free_port()}",
+                ],
+                capture_output=True,
+                text=True,
+                timeout=120,
+                env=env,
+            )
+            assert publisher.returncode == 0, publisher.stderr
+            deadline = time.time() + 60
+            while _get(f"{base}/stats")["frames_processed"] < N_VIEWS:
+                assert time.time() < deadline, _get(f"{base}/stats")
+                time.sleep(0.5)
+            time.sleep(0.5)
+            stats = _get(f"{base}/stats")
+            assert stats["frames_received"] == N_VIEWS and stats["decode_errors"] == {}
+            objects = {o["object_id"]: o for o in _get(f"{base}/objects")}
+            assert objects, "no objects estimated"
+            # the last update received over Zenoh for each object is its current estimate
+            last = {u["object_id"]: u for u in updates}
+            for oid, o in objects.items():
+                assert oid in last and last[oid]["t"] == o["t"]
+            # the same estimates as an offline run of the same messages
+            messages = list(scene_messages(load_dataset(full_res_dataset), 0, "itest", "cam0", 4.0))
+            offline = _offline(load_dataset(full_res_dataset), messages)
+            assert set(offline) == set(objects)
+            for oid, o in objects.items():
+                np.testing.assert_allclose(o["t"], offline[oid]["t"], atol=1e-9)
+                np.testing.assert_allclose(o["q"], offline[oid]["q"], atol=1e-9)
+                assert o["status"] == offline[oid]["status"]
+            # state over Zenoh
+            replies = list(session.get("itest/@v1/estimator/state", timeout=5))
+            state = msgpack.unpackb(replies[0].ok.payload.to_bytes())
+            assert {o["object_id"] for o in state["objects"]} == set(objects)
+            # reset one object over Zenoh, seen on the SSE stream; then all over HTTP
+            events = []
+
+            def listen():
+                with urllib.request.urlopen(f"{base}/events?max_events=1", timeout=20) as r:
+                    events.append(r.read().decode())
+
+            listener = threading.Thread(target=listen)
+            listener.start()
+            time.sleep(1.0)
+            first = sorted(objects)[0]
+            replies = list(
+                session.get(
+                    "itest/@v1/estimator/reset",
+                    payload=msgpack.packb({"v": 1, "object_id": first}),
+                    timeout=5,
+                )
+            )
+            assert msgpack.unpackb(replies[0].ok.payload.to_bytes())["removed"] == 1
+            listener.join(timeout=20)
+            assert events and "event: reset" in events[0] and first in events[0]
+            assert first not in {o["object_id"] for o in _get(f"{base}/objects")}
+            assert _post(f"{base}/reset", {})["removed"] == len(objects) - 1
+            assert _get(f"{base}/objects") == []
+            sub.undeclare()
+    finally:
+        daemon.terminate()
+        try:
+            daemon.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            daemon.kill()
