@@ -1,0 +1,104 @@
+"""1,000 malformed messages on every input key: the daemon keeps running, counts them, and its
+estimates do not change."""
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from estimator.tracker import MultiViewEstimator
+from service.codec import encode_camera_info, encode_camera_pose
+from service.daemon import Daemon
+from service.settings import Settings
+from service.sync import SyncedFrame
+from service.worker import EstimatorWorker
+from sim.scenes import REALSENSE_1280x720 as CAM
+from sim.scenes import SceneSpec
+from sim.sequences import make_sequence
+
+N = 1000
+
+
+class _Payload:
+    def __init__(self, data):
+        self._data = data
+
+    def to_bytes(self):
+        return self._data
+
+
+class _Sample:
+    def __init__(self, key, data):
+        self.key_expr = key
+        self.payload = _Payload(data)
+
+
+def _garbage(rng, kind):
+    """Malformed payloads of many shapes for one message kind."""
+    good_pose = msgpack.unpackb(encode_camera_pose(5, "cam0", np.eye(4)))
+    good_info = msgpack.unpackb(encode_camera_info(5, "cam0", CAM))
+    good_image = {"v": 1, "stamp_ns": 5, "frame_id": "cam0", "encoding": "rgb8", "width": 8,
+                  "height": 8, "data": bytes(192)}
+    base = {"pose": good_pose, "info": good_info, "image": good_image}[kind]
+    r = int(rng.integers(10))
+    if r == 0:
+        return rng.bytes(int(rng.integers(0, 200)))  # random bytes
+    if r == 1:
+        return b""
+    if r == 2:
+        return b"\x00" * (17 * 1024 * 1024)  # oversized
+    if r == 3:
+        return msgpack.packb([1, 2, 3])
+    msg = dict(base)
+    field = list(msg)[int(rng.integers(len(msg)))]
+    bad_values = [None, "x", -1, 2**70, math.nan, math.inf, [], [math.nan] * 9, {"a": 1},
+                  b"\xff" * 3, [1e308] * 4, True]
+    msg[field] = bad_values[int(rng.integers(len(bad_values)))]
+    if r == 4:
+        msg["v"] = 2
+    if r == 5 and kind == "image":
+        msg.update(encoding="jpeg", data=rng.bytes(100))
+    if r == 6 and kind == "pose":
+        msg["q"] = [0.0, 0.0, 0.0, 0.5]
+    try:
+        return msgpack.packb(msg, use_bin_type=True)
+    except (OverflowError, TypeError, ValueError):
+        return rng.bytes(50)
+
+
+@pytest.fixture()
+def daemon(robi_catalog):
+    seq = make_sequence(robi_catalog, 8, SceneSpec(n_views=3))
+    by_stamp = {v.frame.stamp_ns: v.detections for v in seq.views}
+    worker = EstimatorWorker(MultiViewEstimator(robi_catalog), lambda im, s: by_stamp[s])
+    for v in seq.views:
+        f = v.frame
+        worker.process(SyncedFrame("cam0", f.stamp_ns, None, f.camera, f.T_world_cam))
+    return Daemon(Settings(cell="fuzz"), worker)
+
+
+def test_malformed_messages_are_counted_and_change_nothing(daemon):
+    before = {e.object_id: e.T_world_obj.copy() for e in daemon.worker.snapshot()}
+    assert before
+    rng = np.random.default_rng(0)
+    accepted = 0
+    for kind in ("info", "image", "pose"):
+        key = f"fuzz/@v1/cam/cam0/{kind}"
+        for _ in range(N):
+            errors = daemon.stats.decode_errors.get(key, 0)
+            daemon.on_sample(_Sample(key, _garbage(rng, kind)))
+            accepted += daemon.stats.decode_errors.get(key, 0) == errors
+    # a few mutations leave a valid message (e.g. a frame_id of 'x'); all others are counted
+    stats = daemon.stats_dict()
+    for kind in ("info", "image", "pose"):
+        assert stats["decode_errors"][f"fuzz/@v1/cam/cam0/{kind}"] >= 0.8 * N
+        assert stats["received"][f"fuzz/@v1/cam/cam0/{kind}"] == N
+    assert accepted < 0.2 * 3 * N
+    # unknown keys are counted as well
+    daemon.on_sample(_Sample("fuzz/@v1/cam/cam0/depth", b"x"))
+    assert daemon.stats.decode_errors["fuzz/@v1/cam/cam0/depth"] == 1
+    after = {e.object_id: e.T_world_obj for e in daemon.worker.snapshot()}
+    assert after.keys() == before.keys()
+    for oid in before:
+        np.testing.assert_array_equal(after[oid], before[oid])
