@@ -35,6 +35,7 @@ class MixtureConfig:
     sigma_deg: float = 10.0  # per-axis std of a measurement of confidence 1
     max_iterations: int = 10
     tolerance_rad: float = 1e-7
+    max_members: int = 50  # older members leave the refinement; their confidence stays
 
 
 @dataclass(eq=False)
@@ -45,14 +46,16 @@ class RotationComponent:
     R_world_obj: np.ndarray
     members: list[tuple[np.ndarray, float]] = field(default_factory=list)
     cov: np.ndarray = field(default_factory=lambda: np.eye(3) * UNIFORM_ANGLE_VAR)
+    retired_confidence: float = 0.0  # of members dropped from the refinement window
+    retired: int = 0
 
     @property
     def confidence(self) -> float:
-        return float(sum(c for _, c in self.members))
+        return float(sum(c for _, c in self.members) + self.retired_confidence)
 
     @property
     def n(self) -> int:
-        return len(self.members)
+        return len(self.members) + self.retired
 
 
 def _axis_angle_optimum(M: np.ndarray, axis: np.ndarray) -> float:
@@ -130,7 +133,12 @@ class RotationMixture:
             self.components.append(RotationComponent(R.copy(), [(R.copy(), float(confidence))]))
             best = len(self.components) - 1
         else:
-            self.components[best].members.append((R.copy(), float(confidence)))
+            comp = self.components[best]
+            comp.members.append((R.copy(), float(confidence)))
+            while len(comp.members) > self.config.max_members:
+                _, c = comp.members.pop(0)
+                comp.retired_confidence += c
+                comp.retired += 1
         self._refine(self.components[best])
         return best
 

@@ -43,6 +43,7 @@ from estimator.translation import (
     TranslationEstimate,
     bbox_diagonal_ratio,
     estimate_translation,
+    marginalize_oldest,
     predict,
     prior_from_first_view,
 )
@@ -116,6 +117,8 @@ class TrackerConfig:
     # views of the track wait (their images are kept for up to max_pending_views frames)
     rotation_max_depth_rel_std: float = 0.05
     max_pending_views: int = 8
+    # a track keeps this many views for its translation; older ones are folded into its prior
+    max_track_views: int = 30
 
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
@@ -136,6 +139,7 @@ class Track:
     status: str = TENTATIVE
     detections: list[tuple[int, int]] = field(default_factory=list)  # (stamp_ns, index)
     mixture: RotationMixture | None = None
+    views_seen: int = 1
     # views waiting for a good enough translation: (stamp_ns, T_cam_world, K, mask)
     pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = field(
         default_factory=list
@@ -415,6 +419,11 @@ class MultiViewEstimator:
 
     def _add_view(self, track, T_cam_world, K, uv, det, stamp, index) -> None:
         track.obs = track.obs.append(T_cam_world, K, uv, det.center_cov, stamp)
+        track.views_seen += 1
+        if len(track.obs) > self.config.max_track_views:
+            track.obs, track.prior_mean, track.prior_cov = marginalize_oldest(
+                track.obs, track.prior_mean, track.prior_cov, track.estimate.t_world_obj
+            )
         track.estimate = estimate_translation(
             track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
         )
@@ -452,7 +461,7 @@ class MultiViewEstimator:
             cov=cov,
             confidence=confidence,
             hypotheses=hypotheses,
-            n_views=len(track.obs),
+            n_views=track.views_seen,
             status=track.status,
         )
 

@@ -243,3 +243,50 @@ def _huber_weights(s: np.ndarray, k: float) -> np.ndarray:
     """IRLS weights of the Huber loss on squared Mahalanobis residuals ``s``."""
     root = np.sqrt(np.maximum(s, 0.0))
     return np.where(root <= k, 1.0, k / np.maximum(root, 1e-300))
+
+
+def marginalize_oldest(
+    obs: CenterObservations,
+    prior_mean: np.ndarray,
+    prior_cov: np.ndarray,
+    t_hat: np.ndarray,
+    huber_k: float = HUBER_K,
+) -> tuple[CenterObservations, np.ndarray, np.ndarray]:
+    """Fold the oldest view into the prior, linearised at ``t_hat``, and drop it.
+
+    Keeps a long-lived track's cost bounded: the prior becomes the Gaussian that reproduces
+    the quadratic (t - m)^T P^-1 (t - m) + w (J (t - t_hat) + r)^T Sigma^-1 (J (t - t_hat) + r)
+    of the old prior and the dropped view.
+
+    Returns:
+        the observations without the oldest, the new prior mean (3,) and covariance (3, 3).
+    """
+    first = CenterObservations(
+        obs.R_cam_world[:1],
+        obs.t_cam_world[:1],
+        obs.K[:1],
+        obs.uv[:1],
+        obs.info[:1],
+        obs.stamp_ns[:1],
+    )
+    uv, J, z = predict(t_hat, first)
+    r = uv[0] - first.uv[0]
+    W = first.info[0]
+    if z[0] > MIN_DEPTH:
+        W = W * _huber_weights(np.array([r @ W @ r]), huber_k)[0]
+    else:
+        W = W * 0.0
+    A = np.linalg.inv(prior_cov)
+    A_new = A + J[0].T @ W @ J[0]
+    b = A @ prior_mean + J[0].T @ W @ (J[0] @ t_hat - r)
+    mean = np.linalg.solve(A_new, b)
+    cov = np.linalg.inv(A_new)
+    rest = CenterObservations(
+        obs.R_cam_world[1:],
+        obs.t_cam_world[1:],
+        obs.K[1:],
+        obs.uv[1:],
+        obs.info[1:],
+        obs.stamp_ns[1:],
+    )
+    return rest, mean, 0.5 * (cov + cov.T)

@@ -19,9 +19,7 @@ from sim.sequences import make_sequence
 def daemon(robi_catalog):
     seq = make_sequence(robi_catalog, 5, SceneSpec(n_views=4))
     by_stamp = {v.frame.stamp_ns: v.detections for v in seq.views}
-    worker = EstimatorWorker(
-        MultiViewEstimator(robi_catalog), lambda image, stamp: by_stamp[stamp]
-    )
+    worker = EstimatorWorker(MultiViewEstimator(robi_catalog), lambda image, stamp: by_stamp[stamp])
     d = Daemon(Settings(), worker)
     for v in seq.views:
         f = v.frame

@@ -38,8 +38,15 @@ def _garbage(rng, kind):
     """Malformed payloads of many shapes for one message kind."""
     good_pose = msgpack.unpackb(encode_camera_pose(5, "cam0", np.eye(4)))
     good_info = msgpack.unpackb(encode_camera_info(5, "cam0", CAM))
-    good_image = {"v": 1, "stamp_ns": 5, "frame_id": "cam0", "encoding": "rgb8", "width": 8,
-                  "height": 8, "data": bytes(192)}
+    good_image = {
+        "v": 1,
+        "stamp_ns": 5,
+        "frame_id": "cam0",
+        "encoding": "rgb8",
+        "width": 8,
+        "height": 8,
+        "data": bytes(192),
+    }
     base = {"pose": good_pose, "info": good_info, "image": good_image}[kind]
     r = int(rng.integers(10))
     if r == 0:
@@ -52,8 +59,20 @@ def _garbage(rng, kind):
         return msgpack.packb([1, 2, 3])
     msg = dict(base)
     field = list(msg)[int(rng.integers(len(msg)))]
-    bad_values = [None, "x", -1, 2**70, math.nan, math.inf, [], [math.nan] * 9, {"a": 1},
-                  b"\xff" * 3, [1e308] * 4, True]
+    bad_values = [
+        None,
+        "x",
+        -1,
+        2**70,
+        math.nan,
+        math.inf,
+        [],
+        [math.nan] * 9,
+        {"a": 1},
+        b"\xff" * 3,
+        [1e308] * 4,
+        True,
+    ]
     msg[field] = bad_values[int(rng.integers(len(bad_values)))]
     if r == 4:
         msg["v"] = 2

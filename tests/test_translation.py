@@ -123,3 +123,37 @@ def test_prior_refuses_bad_sizes():
         prior_from_first_view(np.eye(4), CAM.K, np.zeros(2), 0.0, 0.08)
     with pytest.raises(ValueError, match="diameter"):
         prior_from_first_view(np.eye(4), CAM.K, np.zeros(2), 100.0, np.nan)
+
+
+def test_folding_old_views_into_the_prior_keeps_the_estimate():
+    from estimator.translation import marginalize_oldest
+
+    t_true = np.array([0.02, -0.01, 0.03])
+    T_wcs = np.concatenate([_views(8, s) for s in range(5)])  # 40 views
+    obs = _observe(t_true, T_wcs, noise=2.0, seed=11)
+    z = np.linalg.norm(t_true - T_wcs[0][:3, 3])
+    mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], CAM.K[0, 0] * 0.08 / z, 0.08)
+    full = estimate_translation(obs, mean, cov)
+    window = CenterObservations(
+        obs.R_cam_world[:10],
+        obs.t_cam_world[:10],
+        obs.K[:10],
+        obs.uv[:10],
+        obs.info[:10],
+        obs.stamp_ns[:10],
+    )
+    m, P = mean, cov
+    est = estimate_translation(window, m, P)
+    for k in range(10, 40):
+        window = window.append(
+            np.vstack([np.hstack([obs.R_cam_world[k], obs.t_cam_world[k][:, None]]), [0, 0, 0, 1]]),
+            obs.K[k],
+            obs.uv[k],
+            np.linalg.inv(obs.info[k]),
+            k,
+        )
+        window, m, P = marginalize_oldest(window, m, P, est.t_world_obj)
+        est = estimate_translation(window, m, P, start=est.t_world_obj)
+    assert len(window) == 10
+    assert np.linalg.norm(est.t_world_obj - full.t_world_obj) < 0.2e-3
+    np.testing.assert_allclose(np.sqrt(np.diag(est.cov)), np.sqrt(np.diag(full.cov)), rtol=0.2)
