@@ -27,6 +27,7 @@ class VotingConfig:
     max_instances: int = 30  # per class
     cov_scale: float = 1.0
     min_center_var: float = 0.05  # output px^2: a floor for a perfectly consistent field
+    max_scoring_pixels: int = 800  # hypotheses are scored on a random subset of this size
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,15 +88,21 @@ def vote_instances(
         h = h[np.all(np.isfinite(h), axis=1)]
         if len(h) == 0:
             break
-        d = h[:, None, :] - p[None, :, :]  # (K, n, 2)
+        # score on a random subset (the cost of a round stays bounded on large masks), then
+        # take the best hypothesis's inliers among all remaining pixels
+        if len(p) > config.max_scoring_pixels:
+            sub = rng.choice(len(p), config.max_scoring_pixels, replace=False)
+        else:
+            sub = np.arange(len(p))
+        d = h[:, None, :] - p[None, sub, :]  # (K, n_sub, 2)
         norm = np.linalg.norm(d, axis=2)
-        cos = np.einsum("knc,nc->kn", d, v) / np.maximum(norm, 1e-9)
-        votes = cos > config.inlier_cos
-        counts = votes.sum(1)
+        cos = np.einsum("knc,nc->kn", d, v[sub]) / np.maximum(norm, 1e-9)
+        counts = (cos > config.inlier_cos).sum(1)
         best = int(np.argmax(counts))
-        if counts[best] < config.min_inliers:
+        d = h[best][None] - p
+        inliers = (d * v).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9) > config.inlier_cos
+        if inliers.sum() < config.min_inliers:
             break
-        inliers = votes[best]
         center, cov = _least_squares_center(p[inliers], v[inliers])
         # the pixels that agree with the refined center belong to the instance
         d = center[None] - p
