@@ -22,8 +22,7 @@ from clients.camera import scene_messages
 from estimator.dataset import load_dataset
 from estimator.tracker import MultiViewEstimator
 from service.cli import DEFAULT_MODEL
-from service.codec import decode_camera_info, decode_camera_pose, decode_image, estimate_to_dict
-from service.sync import FrameSynchronizer
+from service.codec import estimate_to_dict
 from service.worker import EstimatorWorker
 
 N_VIEWS = 4
@@ -64,24 +63,14 @@ def full_res_dataset(tmp_path_factory, robi_catalog):
 def _offline(dataset, messages):
     """The same messages through the daemon's decoder, synchroniser and worker, in order."""
     from estimator.frontend.network import NetworkFrontend
+    from service.replay import replay_offline
 
     network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
     worker = EstimatorWorker(
         MultiViewEstimator(dataset.catalog),
         lambda image, stamp: network.detect(image, stamp_seed=stamp),
     )
-    sync = FrameSynchronizer()
-    decoders = {
-        "info": (decode_camera_info, sync.add_info),
-        "pose": (decode_camera_pose, sync.add_pose),
-        "image": (decode_image, sync.add_image),
-    }
-    for _, key, payload in messages:
-        kind = key.rsplit("/", 1)[1]
-        decode, add = decoders[kind]
-        add("cam0", decode(payload))
-        while (frame := sync.pop()) is not None:
-            worker.process(frame)
+    replay_offline(((key, payload) for _, key, payload in messages), worker, "itest")
     return {e.object_id: estimate_to_dict(e) for e in worker.snapshot()}
 
 

@@ -1,0 +1,109 @@
+"""MCAP recordings of a cell: one channel per Zenoh key with the raw msgpack payloads.
+
+Times are integer nanoseconds. ``log_time`` is when the message was seen (the recorder's clock
+for live recordings, the publication schedule for generated ones); replay follows log-time
+order. Reading stops with :class:`RecordingError` at the first damaged record, after yielding
+every message before it, so the frames before the damage can still be used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+from mcap.records import Channel, Footer, Message
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from estimator.errors import PosefuseError
+
+RAW_ENCODING = "msgpack"
+PROFILE = "posefuse"
+
+
+class RecordingError(PosefuseError):
+    """A recording that is missing, not MCAP, or damaged."""
+
+    def __init__(self, path: str | Path, reason: str):
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    log_time_ns: int
+    key: str
+    payload: bytes
+
+
+class Recorder:
+    """Writes raw key/payload messages to an MCAP file (a context manager)."""
+
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = self.path.open("wb")
+        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(PROFILE, "posefuse")
+        self._channels: dict[str, int] = {}
+        self._sequence = 0
+        if metadata:
+            self._writer.add_metadata("posefuse", {str(k): str(v) for k, v in metadata.items()})
+
+    def write(self, key: str, payload: bytes, log_time_ns: int) -> None:
+        if key not in self._channels:
+            self._channels[key] = self._writer.register_channel(key, RAW_ENCODING, 0)
+        self._sequence += 1
+        self._writer.add_message(
+            self._channels[key],
+            int(log_time_ns),
+            bytes(payload),
+            int(log_time_ns),
+            self._sequence,
+        )
+
+    def close(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_messages(path: str | Path) -> Iterator[RecordedMessage]:
+    """Raw messages in file order (the recorder writes them in log-time order).
+
+    Reads the file as a stream, so a truncated or corrupt file yields every message before
+    the damage and then raises RecordingError naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise RecordingError(path, "file not found")
+    channels: dict[int, Channel] = {}
+    with path.open("rb") as f:
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is None:
+                        raise RecordingError(
+                            path, f"message on unknown channel {record.channel_id}"
+                        )
+                    if channel.message_encoding == RAW_ENCODING:
+                        yield RecordedMessage(record.log_time, channel.topic, record.data)
+                elif isinstance(record, Footer):
+                    return
+        except RecordingError:
+            raise
+        except Exception as exc:  # the stream reader raises many unrelated types on damage
+            raise RecordingError(
+                path, f"damaged after the last good message ({type(exc).__name__})"
+            ) from None
+    raise RecordingError(path, "truncated: no footer")
