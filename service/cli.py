@@ -423,6 +423,77 @@ def _cmd_objects(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_record(args: argparse.Namespace) -> int:
+    import threading
+
+    import zenoh
+
+    from service.keys import Keys
+    from service.recording import Recorder
+    from service.settings import zenoh_config
+
+    settings = _settings(args)
+    keys = Keys(settings.cell)
+    counts: dict[str, int] = {}
+    with Recorder(args.out, metadata={"cell": settings.cell}) as recorder:
+        lock = threading.Lock()
+
+        def on_sample(sample):
+            key = str(sample.key_expr)
+            with lock:  # the writer is not thread-safe; log time is the arrival time
+                recorder.write(key, sample.payload.to_bytes(), time.time_ns())
+                counts[key] = counts.get(key, 0) + 1
+
+        with zenoh.open(zenoh_config(settings)) as session:
+            session.declare_subscriber(f"{keys.root}/**", on_sample)
+            print(f"recording {keys.root}/** to {args.out}; Ctrl-C to stop", flush=True)
+            try:
+                end = time.monotonic() + args.duration if args.duration else None
+                while end is None or time.monotonic() < end:
+                    time.sleep(0.2)
+            except KeyboardInterrupt:
+                pass
+    print(f"wrote {sum(counts.values())} messages on {len(counts)} keys to {args.out}")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from estimator.objects import load_catalog
+    from estimator.tracker import MultiViewEstimator
+    from service.recording import RecordingError, read_messages
+    from service.replay import replay_offline, write_estimates_json
+    from service.worker import EstimatorWorker, make_detector
+
+    if not args.offline:
+        raise PosefuseError("only --offline replay is available yet")
+    settings = _settings(args)
+    catalog = load_catalog(settings.catalog)
+    worker = EstimatorWorker(MultiViewEstimator(catalog), make_detector(settings, catalog))
+    messages = []
+    damage = None
+    try:
+        for m in read_messages(args.file):
+            messages.append((m.key, m.payload))
+    except RecordingError as exc:
+        damage = exc
+    published = replay_offline(messages, worker, settings.cell)
+    from service.codec import estimate_to_dict
+
+    final = [estimate_to_dict(e) for e in worker.snapshot()]
+    out = write_estimates_json(Path(args.out) / "estimates.json", published, final)
+    print(
+        f"replayed {len(messages)} messages: {worker.stats.processed} frames, "
+        f"{len(published)} updates, {len(final)} objects; wrote {out}"
+    )
+    if damage is not None:
+        print(
+            f"posefuse replay: error: {damage} (estimates are of the frames before it)",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
@@ -589,6 +660,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true")
     p.add_argument("--warmup", type=float, default=0.5)
     p.set_defaults(func=_cmd_objects)
+
+    p = sub.add_parser("record", help="record a cell's keys to an MCAP file")
+    _add_transport_args(p)
+    p.add_argument("--out", required=True, help="FILE.mcap")
+    p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
+    p.set_defaults(func=_cmd_record)
+
+    p = sub.add_parser("replay", help="replay an MCAP recording through the estimator")
+    _add_transport_args(p)
+    p.add_argument("file", help="FILE.mcap")
+    p.add_argument("--offline", action="store_true", help="feed the estimator directly")
+    p.add_argument("--out", default="replay", help="folder for estimates.json")
+    p.add_argument("--catalog")
+    p.add_argument("--model")
+    p.set_defaults(func=_cmd_replay)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)
