@@ -6,13 +6,23 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.codec import DecodeError, estimate_to_dict
+from service.codec import DecodeError, decode_reset, estimate_to_dict
 from service.daemon import DECODERS
 from service.keys import Keys
 from service.sync import FrameSynchronizer
 from service.worker import EstimatorWorker
+
+
+@dataclass
+class ReplayResult:
+    """published: every ObjectEstimate update in order (dicts); segments: the estimates held
+    just before each reset request of the recording, and at its end."""
+
+    published: list[dict] = field(default_factory=list)
+    segments: list[list[dict]] = field(default_factory=list)
 
 
 def replay_offline(
@@ -21,16 +31,30 @@ def replay_offline(
     cell: str = "posefuse",
     sync: FrameSynchronizer | None = None,
     max_payload_bytes: int = 16 * 1024 * 1024,
-) -> list[dict]:
-    """(key, payload) pairs in log-time order -> every published ObjectEstimate, as dicts.
+) -> ReplayResult:
+    """(key, payload) pairs in log-time order -> what the daemon would have published.
 
-    Bad messages are counted in ``worker.stats.decode_errors`` and skipped, as live.
+    Bad messages are counted in ``worker.stats.decode_errors`` and skipped, as live. A reset
+    request recorded on the reset key is carried out (after the frames before it).
     """
     keys = Keys(cell)
     sync = sync or FrameSynchronizer()
-    published: list[dict] = []
+    result = ReplayResult()
     for key, payload in messages:
         worker.stats.count(worker.stats.received, key)
+        if key == keys.reset:
+            try:
+                request = decode_reset(payload)
+            except DecodeError:
+                worker.stats.count(worker.stats.decode_errors, key)
+                continue
+            if worker.stats.processed:
+                result.segments.append([estimate_to_dict(e) for e in worker.snapshot()])
+            try:
+                worker.reset(request.class_id, request.object_id)
+            except (KeyError, ValueError):
+                pass
+            continue
         parsed = keys.parse_camera(key)
         if parsed is None:
             continue  # outputs and other cells' keys in a recording are not inputs
@@ -42,14 +66,15 @@ def replay_offline(
             continue
         {"info": sync.add_info, "pose": sync.add_pose, "image": sync.add_image}[kind](cam_id, msg)
         while (frame := sync.pop()) is not None:
-            published.extend(estimate_to_dict(e) for e in worker.process(frame))
-    return published
+            result.published.extend(estimate_to_dict(e) for e in worker.process(frame))
+    result.segments.append([estimate_to_dict(e) for e in worker.snapshot()])
+    return result
 
 
-def write_estimates_json(path: str | Path, published: list[dict], final: list[dict]) -> Path:
-    """Deterministic JSON: every update in order, and the final state."""
+def write_estimates_json(path: str | Path, published: list[dict], segments: list) -> Path:
+    """Deterministic JSON: every update in order, and the state at the end of each segment."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"updates": published, "final": final}
+    doc = {"updates": published, "segments": segments}
     path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     return path
