@@ -14,6 +14,7 @@ from estimator.errors import PosefuseError
 
 # The procedural catalog committed with the project (found beside the packages in a checkout).
 DEFAULT_CATALOG = str(Path(__file__).resolve().parents[1] / "catalogs" / "robi_like")
+DEFAULT_RECORDING = str(Path(__file__).resolve().parents[1] / "recordings" / "demo.mcap")
 # The front end trained on it, shipped with the project.
 DEFAULT_MODEL = str(Path(__file__).resolve().parents[1] / "models" / "robi_like.onnx")
 
@@ -494,6 +495,43 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_make_demo(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.objects import load_catalog
+    from service.demo import make_recording
+    from sim.scenes import SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    catalog = load_catalog(args.catalog)
+    data = Path(args.work)
+    generate_dataset(
+        catalog,
+        data,
+        SynthConfig(n_scenes=args.scenes, seed=args.seed, scene=SceneSpec(n_views=args.views)),
+    )
+    dataset = load_dataset(data)
+    out = make_recording(dataset, dataset.scene_ids, args.out)
+    print(
+        f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): {args.scenes} scenes x "
+        f"{args.views} views, seed {args.seed}"
+    )
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from service.demo import run_demo
+
+    settings = _settings(args)
+    if not args.listen:  # a free loopback port: the demo needs no network and no other service
+        import socket
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        settings = settings.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
+    return run_demo(args.recording, settings, keep_serving=args.serve)
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
@@ -675,6 +713,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--catalog")
     p.add_argument("--model")
     p.set_defaults(func=_cmd_replay)
+
+    p = sub.add_parser("make-demo", help="render bin scenes and record them as the demo MCAP")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG)
+    p.add_argument("--out", default=DEFAULT_RECORDING)
+    p.add_argument("--work", default="data/demo", help="where the rendered dataset goes")
+    p.add_argument("--scenes", type=int, default=3)
+    p.add_argument("--views", type=int, default=8)
+    p.add_argument("--seed", type=int, default=900)
+    p.set_defaults(func=_cmd_make_demo)
+
+    p = sub.add_parser("demo", help="replay the demo recording through the daemon and score it")
+    _add_transport_args(p)
+    p.add_argument("--recording", default=DEFAULT_RECORDING)
+    p.add_argument("--http-port", type=int)
+    p.add_argument("--serve", type=float, default=0.0, help="keep the API up this many seconds")
+    p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("quickstart", help="render a small dataset and run the evaluation on it")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)

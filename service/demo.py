@@ -65,3 +65,172 @@ def make_recording(
             ):
                 rec.write(key, payload, start + int(offset * 1e9))
     return Path(out)
+
+
+def score_segment(
+    estimates: list[dict], truth: list[tuple[int, np.ndarray]], catalog, threshold: float = 0.1
+) -> list[dict]:
+    """Each confirmed estimate with its ADD(-S) error to the closest unmatched true instance of
+    its class, greedy in order of confidence; ``correct`` when below threshold x diameter."""
+    from scipy.spatial.transform import Rotation
+
+    from estimator.evaluation import pose_error
+
+    rows = []
+    free = set(range(len(truth)))
+    for e in sorted(estimates, key=lambda e: -e["confidence"]):
+        if e["status"] != "confirmed":
+            continue
+        model = catalog[e["class_id"]]
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(e["q"]).as_matrix()
+        T[:3, 3] = e["t"]
+        best, best_err = None, np.inf
+        for k in free:
+            if truth[k][0] != e["class_id"]:
+                continue
+            err = pose_error(model, T, truth[k][1]) if e["hypotheses"] else np.inf
+            if err < best_err:
+                best, best_err = k, err
+        correct = best is not None and best_err < threshold * model.diameter
+        if correct:
+            free.discard(best)
+        rows.append(
+            {
+                "object_id": e["object_id"],
+                "class": model.name,
+                "n_views": e["n_views"],
+                "confidence": e["confidence"],
+                "error_mm": best_err * 1000,
+                "correct": bool(correct),
+            }
+        )
+    return rows
+
+
+def run_demo(
+    recording: str | Path, settings, show_progress: bool = True, keep_serving: float = 0.0
+) -> int:
+    """Daemon + API + a Zenoh replay of the recording in lockstep, on loopback; prints a table."""
+    import threading
+    import time
+
+    import uvicorn
+    import zenoh
+    from tqdm import tqdm
+
+    from estimator.objects import load_catalog
+    from estimator.tracker import MultiViewEstimator
+    from service.api import create_app
+    from service.codec import decode_reset, estimate_to_dict
+    from service.daemon import Daemon
+    from service.recording import read_messages
+    from service.settings import zenoh_config
+    from service.worker import EstimatorWorker, make_detector
+
+    catalog = load_catalog(settings.catalog)
+    estimator = MultiViewEstimator(catalog, show_progress=show_progress)
+    for obj_id in catalog:
+        estimator.matcher(obj_id)
+    daemon = Daemon(settings, EstimatorWorker(estimator, make_detector(settings, catalog)))
+    daemon_thread = threading.Thread(target=daemon.run, daemon=True)
+    daemon_thread.start()
+    daemon.ready.wait(30)
+    server = uvicorn.Server(
+        uvicorn.Config(
+            create_app(daemon),
+            host=settings.http_host,
+            port=settings.http_port,
+            log_level="warning",
+        )
+    )
+    threading.Thread(target=server.run, daemon=True).start()
+    keys = Keys(settings.cell)
+    messages = list(read_messages(recording))
+    truth: dict[int, list] = {}
+    segments: list[tuple[int | None, list[dict]]] = []
+    scene = None
+    n_images = sum(m.key.endswith("/image") for m in messages)
+    sent: dict[str, int] = {}
+
+    def handled() -> int:
+        return daemon.stats.processed + daemon.stats.errors + sum(daemon.sync.dropped.values())
+
+    client_conf = zenoh_config(
+        settings.model_copy(update={"listen": [], "mode": "peer", "connect": settings.listen})
+    )
+    with zenoh.open(client_conf) as session:
+        time.sleep(0.5)
+        bar = tqdm(total=n_images, desc="replay", unit="frame", disable=not show_progress)
+        for m in messages:
+            if m.key == keys.reset:
+                if scene is not None:
+                    segments.append(
+                        (scene, [estimate_to_dict(e) for e in daemon.worker.snapshot()])
+                    )
+                request = decode_reset(m.payload)
+                daemon.reset(request.class_id, request.object_id)
+                continue
+            if "/groundtruth/" in m.key:
+                scene = int(m.key.rsplit("/", 1)[1])
+                truth[scene] = decode_groundtruth(m.payload)
+                continue
+            session.put(m.key, m.payload)
+            sent[m.key] = sent.get(m.key, 0) + 1
+            if m.key.endswith("/image"):
+                bar.update(1)
+                continue
+            # lockstep: once this message has arrived, wait until every image sent so far has
+            # been processed (or dropped), unless one still waits for a later pose
+            deadline = time.monotonic() + 30
+            while daemon.stats.received.get(m.key, 0) < sent[m.key]:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the daemon did not receive {m.key}")
+                time.sleep(0.002)
+            images = sum(v for k, v in sent.items() if k.endswith("/image"))
+            stuck_since = None
+            while handled() < images and time.monotonic() < deadline:
+                if daemon.sync.pending():
+                    stuck_since = stuck_since or time.monotonic()
+                    if time.monotonic() - stuck_since > 0.2:
+                        break
+                else:
+                    stuck_since = None
+                time.sleep(0.002)
+        deadline = time.monotonic() + 30
+        while daemon.sync.pending() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        bar.close()
+        segments.append((scene, [estimate_to_dict(e) for e in daemon.worker.snapshot()]))
+    total = correct = 0
+    for scene_id, estimates in segments:
+        rows = score_segment(estimates, truth.get(scene_id, []), catalog)
+        print(
+            f"\nscene {scene_id}: {len(truth.get(scene_id, []))} parts in the bin, "
+            f"{len(rows)} confirmed estimates"
+        )
+        print(f"{'object_id':<18} {'class':<13} {'views':>5} {'conf':>5} {'ADD(-S) mm':>10}  ok")
+        for r in rows:
+            print(
+                f"{r['object_id']:<18} {r['class']:<13} {r['n_views']:>5} "
+                f"{r['confidence']:>5.2f} {r['error_mm']:>10.1f}  {'yes' if r['correct'] else 'no'}"
+            )
+            total += 1
+            correct += r["correct"]
+    print(
+        f"\n{correct} of {total} estimates within ADD(-S) 0.1d of a true part; "
+        f"stats: {daemon.stats_dict()['frames_processed']} frames processed"
+    )
+    url = f"http://{settings.http_host}:{settings.http_port}"
+    if keep_serving:
+        print(
+            f"the API answers at {url}/objects, {url}/stats and {url}/docs for {keep_serving:g} s"
+        )
+        time.sleep(keep_serving)
+    else:
+        print(f"(run `posefuse demo --serve 600` to keep the daemon and its API at {url})")
+    server.should_exit = True
+    daemon.stop()
+    daemon_thread.join(timeout=10)
+    return 0
