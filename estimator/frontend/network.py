@@ -138,6 +138,8 @@ class NetworkFrontend:
         catalog: the object catalog; the model must have been trained for it.
         threads: onnxruntime intra-op threads.
         deterministic: sequential execution and deterministic kernels where available.
+        max_center_std_px: instances whose center standard deviation (sqrt of the trace of its
+            covariance, image pixels) exceeds this are dropped.
     """
 
     def __init__(
@@ -148,6 +150,7 @@ class NetworkFrontend:
         deterministic: bool = True,
         voting: VotingConfig | None = None,
         seed: int = 0,
+        max_center_std_px: float = 15.0,
     ):
         import onnxruntime as ort
 
@@ -184,6 +187,8 @@ class NetworkFrontend:
             base.min_center_var,
         )
         self.seed = seed
+        # a vote this spread out comes from a fragment or a confused field, not a part
+        self.max_center_std_px = max_center_std_px
 
     def check_image(self, image: np.ndarray) -> None:
         w, h = self.card.image_size
@@ -207,9 +212,8 @@ class NetworkFrontend:
         n_classes = len(self.card.classes)
         logits, vectors = out[: n_classes + 1], out[n_classes + 1 :]
         labels = np.argmax(logits, axis=0)
-        e = np.exp(logits - logits.max(0, keepdims=True))
-        prob = e / e.sum(0, keepdims=True)
         h_out, w_out = labels.shape
+        flat_logits = logits.reshape(n_classes + 1, -1)
         H, W = image.shape[:2]
         ys, xs = np.mgrid[0:h_out, 0:w_out]
         detections = []
@@ -223,22 +227,31 @@ class NetworkFrontend:
             pix = np.stack([xs.reshape(-1)[flat], ys.reshape(-1)[flat]], 1).astype(np.float64)
             vec = vectors.reshape(2, -1)[:, flat].T.astype(np.float64)
             for inst in vote_instances(pix, vec, self.voting, rng):
-                mask_out = np.zeros(h_out * w_out, np.uint8)
-                mask_out[flat[inst.pixels]] = 1
-                mask_out = mask_out.reshape(h_out, w_out)
-                mask = cv2.resize(
-                    mask_out,
-                    (int(w_out * scale), int(h_out * scale)),
-                    interpolation=cv2.INTER_NEAREST,
-                )[:H, :W].astype(bool)
-                if mask.shape != (H, W):
-                    mask = np.pad(mask, ((0, H - mask.shape[0]), (0, W - mask.shape[1])))
-                ys_m, xs_m = np.nonzero(mask)
-                if len(xs_m) == 0:
-                    continue
-                bbox = np.array([xs_m.min(), ys_m.min(), np.ptp(xs_m) + 1, np.ptp(ys_m) + 1], float)
-                center = output_to_image(inst.center, self.card)
                 cov = inst.cov * scale**2
-                score = float(prob[c].reshape(-1)[flat[inst.pixels]].mean())
+                if np.sqrt(np.trace(cov)) > self.max_center_std_px:
+                    continue
+                members = pix[inst.pixels].astype(int)  # (n, 2) output-grid x, y
+                x0, y0 = members.min(0)
+                x1, y1 = members.max(0) + 1
+                crop = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                crop[members[:, 1] - y0, members[:, 0] - x0] = 1
+                # the instance's output pixels cover [x0, x1) x [y0, y1) of the grid: in the
+                # image that is [X0, X1) x [Y0, Y1)
+                X0, Y0 = int(round(x0 * scale)), int(round(y0 * scale))
+                X1, Y1 = min(int(round(x1 * scale)), W), min(int(round(y1 * scale)), H)
+                if X1 <= X0 or Y1 <= Y0:
+                    continue
+                big = cv2.resize(
+                    crop,
+                    (int(round((x1 - x0) * scale)), int(round((y1 - y0) * scale))),
+                    interpolation=cv2.INTER_NEAREST,
+                )
+                mask = np.zeros((H, W), bool)
+                mask[Y0:Y1, X0:X1] = big[: Y1 - Y0, : X1 - X0] > 0
+                bbox = np.array([X0, Y0, X1 - X0, Y1 - Y0], float)
+                center = output_to_image(inst.center, self.card)
+                lg = flat_logits[:, flat[inst.pixels]]
+                e = np.exp(lg - lg.max(0, keepdims=True))
+                score = float((e[c] / e.sum(0)).mean())
                 detections.append(Detection(obj_id, bbox, center, cov, mask, score))
         return detections

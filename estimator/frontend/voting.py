@@ -21,13 +21,13 @@ import numpy as np
 
 @dataclass(frozen=True)
 class VotingConfig:
-    n_hypotheses: int = 128
+    n_hypotheses: int = 64
     inlier_cos: float = 0.99  # about 8 degrees
     min_inliers: int = 25  # pixels at the network's output resolution
     max_instances: int = 30  # per class
     cov_scale: float = 1.0
     min_center_var: float = 0.05  # output px^2: a floor for a perfectly consistent field
-    max_scoring_pixels: int = 800  # hypotheses are scored on a random subset of this size
+    max_scoring_pixels: int = 400  # hypotheses are scored on a random subset of this size
 
 
 @dataclass(frozen=True, eq=False)
