@@ -28,6 +28,7 @@ class VotingConfig:
     cov_scale: float = 1.0
     min_center_var: float = 0.05  # output px^2: a floor for a perfectly consistent field
     max_scoring_pixels: int = 400  # hypotheses are scored on a random subset of this size
+    member_cos: float = 0.9  # looser: the pixels that make the instance's mask (about 25 deg)
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,14 +105,14 @@ def vote_instances(
         if inliers.sum() < config.min_inliers:
             break
         center, cov = _least_squares_center(p[inliers], v[inliers])
-        # the pixels that agree with the refined center belong to the instance
+        # the center comes from the pixels that agree with it closely; the mask takes every
+        # pixel that points at it roughly (vectors near the center and at the rims are noisy)
         d = center[None] - p
         cos = (d * v).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9)
-        members = cos > config.inlier_cos
-        if members.sum() >= config.min_inliers:
-            center, cov = _least_squares_center(p[members], v[members])
-        else:
-            members = inliers
+        strict = cos > config.inlier_cos
+        if strict.sum() >= config.min_inliers:
+            center, cov = _least_squares_center(p[strict], v[strict])
+        members = (cos > config.member_cos) | inliers | (np.linalg.norm(d, axis=1) < 3.0)
         cov = cov * config.cov_scale + np.eye(2) * config.min_center_var
         out.append(VotedInstance(center, cov, remaining[members], int(members.sum())))
         remaining = remaining[~members]
