@@ -477,14 +477,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             messages.append((m.key, m.payload))
     except RecordingError as exc:
         damage = exc
-    published = replay_offline(messages, worker, settings.cell)
-    from service.codec import estimate_to_dict
-
-    final = [estimate_to_dict(e) for e in worker.snapshot()]
-    out = write_estimates_json(Path(args.out) / "estimates.json", published, final)
+    result = replay_offline(messages, worker, settings.cell)
+    out = write_estimates_json(
+        Path(args.out) / "estimates.json", result.published, result.segments
+    )
     print(
         f"replayed {len(messages)} messages: {worker.stats.processed} frames, "
-        f"{len(published)} updates, {len(final)} objects; wrote {out}"
+        f"{len(result.published)} updates, {len(result.segments)} segments; wrote {out}"
     )
     if damage is not None:
         print(
