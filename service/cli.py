@@ -478,9 +478,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         damage = exc
     result = replay_offline(messages, worker, settings.cell)
-    out = write_estimates_json(
-        Path(args.out) / "estimates.json", result.published, result.segments
-    )
+    out = write_estimates_json(Path(args.out) / "estimates.json", result.published, result.segments)
     print(
         f"replayed {len(messages)} messages: {worker.stats.processed} frames, "
         f"{len(result.published)} updates, {len(result.segments)} segments; wrote {out}"

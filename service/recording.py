@@ -45,7 +45,8 @@ class Recorder:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD)
+        # small chunks: a damaged file loses little (each chunk is read whole or not at all)
+        self._writer = Writer(self._file, chunk_size=64 * 1024, compression=CompressionType.ZSTD)
         self._writer.start(PROFILE, "posefuse")
         self._channels: dict[str, int] = {}
         self._sequence = 0
