@@ -97,7 +97,7 @@ class Daemon:
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             request = decode_reset(payload)
-            removed = self.worker.reset(request.class_id, request.object_id)
+            removed = self.reset(request.class_id, request.object_id)
             reply = {"v": 1, "removed": removed}
         except (DecodeError, ValueError) as exc:
             reply = {"v": 1, "error": str(exc)}
