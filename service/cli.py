@@ -526,7 +526,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         settings = settings.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
-    return run_demo(args.recording, settings, keep_serving=args.serve)
+    run_demo(args.recording, settings, keep_serving=args.serve)
+    return 0
 
 
 def _cmd_quickstart(args: argparse.Namespace) -> int:

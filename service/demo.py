@@ -110,8 +110,11 @@ def score_segment(
 
 def run_demo(
     recording: str | Path, settings, show_progress: bool = True, keep_serving: float = 0.0
-) -> int:
-    """Daemon + API + a Zenoh replay of the recording in lockstep, on loopback; prints a table."""
+) -> list[tuple[int | None, list[dict]]]:
+    """Daemon + API + a Zenoh replay of the recording in lockstep, on loopback; prints a table.
+
+    Returns the estimates held at the end of each scene: [(scene_id, [ObjectEstimate dict])].
+    """
     import threading
     import time
 
@@ -233,4 +236,4 @@ def run_demo(
     server.should_exit = True
     daemon.stop()
     daemon_thread.join(timeout=10)
-    return 0
+    return segments

@@ -62,3 +62,33 @@ def test_truncated_recording_gives_the_frames_before_the_damage(tmp_path, cut, d
     assert code == 2
     doc = json.loads((tmp_path / "out" / "estimates.json").read_text())
     assert doc["updates"], "no estimates from the frames before the damage"
+
+
+def test_live_lockstep_replay_over_zenoh_equals_offline(default_banks, capsys):
+    """posefuse demo's path: daemon + API + replay through Zenoh on loopback, in lockstep."""
+    import socket
+
+    from service.demo import run_demo
+
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    settings = Settings(
+        model=DEFAULT_MODEL,
+        catalog=DEFAULT_CATALOG,
+        listen=[f"tcp/127.0.0.1:{ports[0]}"],
+        http_port=ports[1],
+    )
+    segments = run_demo(DEFAULT_RECORDING, settings, show_progress=False)
+    out = capsys.readouterr().out
+    assert "estimates within ADD(-S) 0.1d of a true part" in out
+    expected = json.loads(EXPECTED.read_text())["segments"]
+    assert len(segments) == len(expected)
+    for (_, live), offline in zip(segments, expected, strict=True):
+        assert [o["object_id"] for o in live] == [o["object_id"] for o in offline]
+        for a, b in zip(live, offline, strict=True):
+            assert a["status"] == b["status"] and a["n_views"] == b["n_views"]
+            np.testing.assert_allclose(a["t"], b["t"], atol=1e-9)
+            np.testing.assert_allclose(a["q"], b["q"], atol=1e-9)
