@@ -10,9 +10,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 
-def objects_http(base_url: str, timeout: float = 5.0) -> list[dict]:
-    with urllib.request.urlopen(f"{base_url.rstrip('/')}/objects", timeout=timeout) as r:
+def _get_json(url: str, timeout: float = 5.0):
+    with urllib.request.urlopen(url, timeout=timeout) as r:
         return json.loads(r.read())
+
+
+def objects_http(base_url: str, timeout: float = 5.0) -> list[dict]:
+    return _get_json(f"{base_url.rstrip('/')}/objects", timeout)
 
 
 def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list[dict]:

@@ -458,6 +458,45 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_live(args: argparse.Namespace, settings) -> int:
+    import zenoh
+    from tqdm import tqdm
+
+    from clients.query import _get_json
+    from service.recording import read_messages
+    from service.replay import replay_live
+    from service.settings import zenoh_config
+
+    if args.rate <= 0:
+        raise PosefuseError("--rate must be positive")
+    messages = [(m.log_time_ns, m.key, m.payload) for m in read_messages(args.file)]
+    handled = None
+    if args.lockstep:
+
+        def handled() -> int:
+            stats = _get_json(f"{args.url.rstrip('/')}/stats")
+            return stats["frames_processed"] + sum(stats["frames_dropped"].values())
+
+        try:
+            handled()
+        except OSError as exc:
+            raise PosefuseError(f"--lockstep needs the daemon's API at {args.url}: {exc}") from None
+    n_images = sum(k.endswith("/image") for _, k, _ in messages)
+    with zenoh.open(zenoh_config(settings)) as session:
+        time.sleep(args.warmup)
+        with tqdm(total=n_images, desc="replay", unit="frame") as bar:
+            sent = replay_live(
+                messages,
+                session,
+                settings.cell,
+                rate=args.rate,
+                handled=handled,
+                progress=lambda: bar.update(1),
+            )
+    print(f"published {sent} messages of {args.file}")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from estimator.objects import load_catalog
     from estimator.tracker import MultiViewEstimator
@@ -465,9 +504,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from service.replay import replay_offline, write_estimates_json
     from service.worker import EstimatorWorker, make_detector
 
-    if not args.offline:
-        raise PosefuseError("only --offline replay is available yet")
     settings = _settings(args)
+    if args.live:
+        return _replay_live(args, settings)
+    if not args.offline:
+        raise PosefuseError("say --offline (feed the estimator here) or --live (over Zenoh)")
     catalog = load_catalog(settings.catalog)
     worker = EstimatorWorker(MultiViewEstimator(catalog), make_detector(settings, catalog))
     messages = []
@@ -707,6 +748,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_transport_args(p)
     p.add_argument("file", help="FILE.mcap")
     p.add_argument("--offline", action="store_true", help="feed the estimator directly")
+    p.add_argument("--live", action="store_true", help="publish over Zenoh to a daemon")
+    p.add_argument("--rate", type=float, default=1.0, help="--live: times real time")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="--live: wait for each frame to be processed (reads --url /stats)",
+    )
+    p.add_argument("--url", default="http://127.0.0.1:8000")
+    p.add_argument("--warmup", type=float, default=1.0)
     p.add_argument("--out", default="replay", help="folder for estimates.json")
     p.add_argument("--catalog")
     p.add_argument("--model")

@@ -78,3 +78,58 @@ def write_estimates_json(path: str | Path, published: list[dict], segments: list
     doc = {"updates": published, "segments": segments}
     path.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     return path
+
+
+def replay_live(
+    messages: list[tuple[int, str, bytes]],
+    session,
+    cell: str = "posefuse",
+    rate: float = 1.0,
+    handled=None,
+    progress=None,
+    timeout_s: float = 30.0,
+) -> int:
+    """Publish recorded (log_time_ns, key, payload) over Zenoh.
+
+    Paced at ``rate`` times real time; or, with ``handled`` (a function giving how many images
+    the daemon has processed or dropped), in lockstep: after each pose message the next is sent
+    only when every image sent so far has been dealt with (an image still waiting for a later
+    pose lets the replay go on). Recorded reset requests become queries on the reset key.
+    Returns the number of messages sent.
+    """
+    import time
+
+    keys = Keys(cell)
+    start_wall = time.monotonic()
+    t0 = messages[0][0] if messages else 0
+    images = 0
+    sent = 0
+    for log_time, key, payload in messages:
+        if handled is None and rate > 0:
+            delay = start_wall + (log_time - t0) / 1e9 / rate - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        if key == keys.reset:
+            for _ in session.get(keys.reset, payload=payload, timeout=timeout_s):
+                pass
+            sent += 1
+            continue
+        if keys.parse_camera(key) is None:
+            continue  # ground truth and outputs are not replayed
+        session.put(key, payload)
+        sent += 1
+        if key.endswith("/image"):
+            images += 1
+            if progress:
+                progress()
+        elif handled is not None:
+            deadline = time.monotonic() + timeout_s
+            last, since = handled(), time.monotonic()
+            while last < images and time.monotonic() < deadline:
+                time.sleep(0.01)
+                now = handled()
+                if now != last:
+                    last, since = now, time.monotonic()
+                elif time.monotonic() - since > 1.0:
+                    break  # an image waits for a later pose: go on
+    return sent

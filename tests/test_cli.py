@@ -51,3 +51,24 @@ def test_synth_rejects_bad_arguments(tmp_path, capsys, args, message):
     code = main(["synth", "--out", str(tmp_path / "o"), *args])
     assert code == 2
     assert message in capsys.readouterr().err
+
+
+def test_replay_needs_a_mode_and_lockstep_needs_the_api(tmp_path, capsys):
+    from service.cli import DEFAULT_RECORDING
+
+    assert main(["replay", DEFAULT_RECORDING]) == 2
+    assert "--offline" in capsys.readouterr().err
+    code = main(
+        [
+            "replay",
+            DEFAULT_RECORDING,
+            "--live",
+            "--lockstep",
+            "--url",
+            "http://127.0.0.1:9",
+            "--listen",
+            "tcp/127.0.0.1:0",
+        ]
+    )
+    assert code == 2
+    assert "--lockstep needs the daemon's API" in capsys.readouterr().err
