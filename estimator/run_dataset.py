@@ -36,22 +36,12 @@ class LabelledNetworkFrontend:
         self.max_px = max_px
 
     def detect_with_truth(self, view):
-        from scipy.optimize import linear_sum_assignment
+        from estimator.frontend.metrics import match_to_truth
 
         image = self.dataset.scene(view.scene_id).load_rgb(view.im_id)
         dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
-        gts = [g for g in view.gts if g.T_cam_obj[2, 3] > 0]
-        cost = np.full((len(dets), len(gts)), 1e9)
-        for i, d in enumerate(dets):
-            for j, g in enumerate(gts):
-                dist = np.linalg.norm(d.center_uv - view.camera.project(g.T_cam_obj[:3, 3]))
-                if d.obj_id == g.obj_id and dist <= self.max_px:
-                    cost[i, j] = dist
-        labels = [-1] * len(dets)
-        if cost.size:
-            for i, j in zip(*linear_sum_assignment(cost), strict=True):
-                if cost[i, j] < 1e9:
-                    labels[i] = gts[j].gt_idx
+        gts, _, pairs = match_to_truth(dets, view, self.max_px)
+        labels = [gts[pairs[i]].gt_idx if i in pairs else -1 for i in range(len(dets))]
         return list(zip(dets, labels, strict=True))
 
 

@@ -42,6 +42,30 @@ class FrontendScore:
         )
 
 
+def match_to_truth(dets, view, max_px: float = 15.0):
+    """One-to-one matching of detections to the view's annotated instances of their class by
+    center distance (Hungarian, at most ``max_px``).
+
+    Returns:
+        gts: the annotated instances in front of the camera; truth: (len(gts), 2) their
+        projected centers; pairs: {detection index: index into gts}.
+    """
+    gts = [g for g in view.gts if g.T_cam_obj[2, 3] > 0]
+    truth = np.array([view.camera.project(g.T_cam_obj[:3, 3]) for g in gts]).reshape(-1, 2)
+    cost = np.full((len(dets), len(gts)), 1e9)
+    for i, d in enumerate(dets):
+        for j, g in enumerate(gts):
+            if d.obj_id == g.obj_id:
+                dist = float(np.linalg.norm(d.center_uv - truth[j]))
+                if dist <= max_px:
+                    cost[i, j] = dist
+    pairs = {}
+    if cost.size:
+        rows, cols = linear_sum_assignment(cost)
+        pairs = {int(i): int(j) for i, j in zip(rows, cols, strict=True) if cost[i, j] < 1e9}
+    return gts, truth, pairs
+
+
 def score_frontend(dataset, detect, views, min_visib: float = 0.75, max_px: float = 15.0):
     """detect(view) -> list[Detection]; views: the BopViews to score."""
     n_inst = n_found = n_det = n_det_ok = n_views = 0
@@ -50,19 +74,8 @@ def score_frontend(dataset, detect, views, min_visib: float = 0.75, max_px: floa
         n_views += 1
         dets = detect(view)
         n_det += len(dets)
-        gts = [g for g in view.gts if g.T_cam_obj[2, 3] > 0]
-        truth = np.array([view.camera.project(g.T_cam_obj[:3, 3]) for g in gts]).reshape(-1, 2)
-        cost = np.full((len(dets), len(gts)), 1e9)
-        for i, d in enumerate(dets):
-            for j, g in enumerate(gts):
-                if d.obj_id == g.obj_id:
-                    dist = float(np.linalg.norm(d.center_uv - truth[j]))
-                    if dist <= max_px:
-                        cost[i, j] = dist
-        matched = {}
-        if cost.size:
-            rows, cols = linear_sum_assignment(cost)
-            matched = {int(j): int(i) for i, j in zip(rows, cols, strict=True) if cost[i, j] < 1e9}
+        gts, truth, pairs = match_to_truth(dets, view, max_px)
+        matched = {j: i for i, j in pairs.items()}
         n_det_ok += len(matched)
         for j, g in enumerate(gts):
             if g.visib_fract <= min_visib:
