@@ -425,10 +425,12 @@ def _cmd_objects(args: argparse.Namespace) -> int:
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    import threading
+    import queue
 
     import zenoh
 
+    from estimator.objects import load_catalog
+    from service.foxglove import FoxgloveMirror
     from service.keys import Keys
     from service.recording import Recorder
     from service.settings import zenoh_config
@@ -436,24 +438,33 @@ def _cmd_record(args: argparse.Namespace) -> int:
     settings = _settings(args)
     keys = Keys(settings.cell)
     counts: dict[str, int] = {}
-    with Recorder(args.out, metadata={"cell": settings.cell}) as recorder:
-        lock = threading.Lock()
+    mirror = FoxgloveMirror(settings.cell, load_catalog(settings.catalog))
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
 
-        def on_sample(sample):
-            key = str(sample.key_expr)
-            with lock:  # the writer is not thread-safe; log time is the arrival time
-                recorder.write(key, sample.payload.to_bytes(), time.time_ns())
-                counts[key] = counts.get(key, 0) + 1
+    def on_sample(sample):  # the arrival time is the log time; writing happens below
+        inbox.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
+    def drain(recorder) -> None:
+        while True:
+            try:
+                key, payload, log_time = inbox.get_nowait()
+            except queue.Empty:
+                return
+            recorder.write(key, payload, log_time)
+            counts[key] = counts.get(key, 0) + 1
+
+    with Recorder(args.out, metadata={"cell": settings.cell}, mirror=mirror) as recorder:
         with zenoh.open(zenoh_config(settings)) as session:
             session.declare_subscriber(f"{keys.root}/**", on_sample)
             print(f"recording {keys.root}/** to {args.out}; Ctrl-C to stop", flush=True)
             try:
                 end = time.monotonic() + args.duration if args.duration else None
                 while end is None or time.monotonic() < end:
-                    time.sleep(0.2)
+                    drain(recorder)
+                    time.sleep(0.05)
             except KeyboardInterrupt:
                 pass
+        drain(recorder)
     print(f"wrote {sum(counts.values())} messages on {len(counts)} keys to {args.out}")
     return 0
 
@@ -500,7 +511,8 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from estimator.objects import load_catalog
     from estimator.tracker import MultiViewEstimator
-    from service.recording import RecordingError, read_messages
+    from service.foxglove import FoxgloveMirror
+    from service.recording import Recorder, RecordingError, read_messages
     from service.replay import replay_offline, write_estimates_json
     from service.worker import EstimatorWorker, make_detector
 
@@ -515,14 +527,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     damage = None
     try:
         for m in read_messages(args.file):
-            messages.append((m.key, m.payload))
+            messages.append((m.log_time_ns, m.key, m.payload))
     except RecordingError as exc:
         damage = exc
-    result = replay_offline(messages, worker, settings.cell)
-    out = write_estimates_json(Path(args.out) / "estimates.json", result.published, result.segments)
+    out_dir = Path(args.out)
+    mirror = FoxgloveMirror(settings.cell, catalog)
+    metadata = {"cell": settings.cell, "replay_of": Path(args.file).name}
+    with Recorder(out_dir / "estimates.mcap", metadata=metadata, mirror=mirror) as recorder:
+        result = replay_offline(messages, worker, settings.cell, recorder=recorder)
+    out = write_estimates_json(out_dir / "estimates.json", result.published, result.segments)
     print(
         f"replayed {len(messages)} messages: {worker.stats.processed} frames, "
-        f"{len(result.published)} updates, {len(result.segments)} segments; wrote {out}"
+        f"{len(result.published)} updates, {len(result.segments)} segments; wrote {out} and "
+        f"{out_dir / 'estimates.mcap'} (inputs, estimates and Foxglove channels)"
     )
     if damage is not None:
         print(
@@ -548,7 +565,7 @@ def _cmd_make_demo(args: argparse.Namespace) -> int:
         SynthConfig(n_scenes=args.scenes, seed=args.seed, scene=SceneSpec(n_views=args.views)),
     )
     dataset = load_dataset(data)
-    out = make_recording(dataset, dataset.scene_ids, args.out)
+    out = make_recording(dataset, dataset.scene_ids, args.out, catalog=catalog)
     print(
         f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB): {args.scenes} scenes x "
         f"{args.views} views, seed {args.seed}"
@@ -741,6 +758,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("record", help="record a cell's keys to an MCAP file")
     _add_transport_args(p)
     p.add_argument("--out", required=True, help="FILE.mcap")
+    p.add_argument("--catalog", help="the catalog whose meshes show the estimates")
     p.add_argument("--duration", type=float, default=0.0, help="seconds (0: until Ctrl-C)")
     p.set_defaults(func=_cmd_record)
 

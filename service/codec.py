@@ -174,6 +174,22 @@ def decode_image(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> ImageM
     return ImageMsg(stamp, frame_id, image)
 
 
+def decode_image_compressed(
+    payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD
+) -> tuple[int, str, str, bytes]:
+    """An Image message as (stamp_ns, frame_id, format, data) with data JPEG or PNG bytes.
+
+    JPEG and PNG payloads are passed through untouched; raw encodings are decoded (validated
+    as by :func:`decode_image`) and compressed losslessly as PNG.
+    """
+    decoded = decode_image(payload, max_bytes)  # the estimator's own validation
+    msg = _unpack(payload, "Image", max_bytes)
+    if msg["encoding"] in ("jpeg", "png"):
+        return decoded.stamp_ns, decoded.frame_id, msg["encoding"], bytes(msg["data"])
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(decoded.image, cv2.COLOR_RGB2BGR))
+    return decoded.stamp_ns, decoded.frame_id, "png", buf.tobytes()
+
+
 def decode_camera_pose(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> CameraPoseMsg:
     kind = "CameraPose"
     msg = _unpack(payload, kind, max_bytes)
@@ -327,3 +343,34 @@ def encode_reset(class_id: int | None = None, object_id: str | None = None) -> b
     if object_id is not None:
         msg["object_id"] = object_id
     return _pack(msg)
+
+
+def encode_groundtruth(scene_id: int, instances: list[tuple[int, np.ndarray]]) -> bytes:
+    """The true object poses of a demo scene: instances [(obj_id, T_world_obj (4, 4))]."""
+    return _pack(
+        {
+            "scene_id": scene_id,
+            "objects": [
+                {"obj_id": int(o), "T_world_obj": [float(x) for x in T.reshape(-1)]}
+                for o, T in instances
+            ],
+        }
+    )
+
+
+def decode_groundtruth(
+    payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD
+) -> list[tuple[int, np.ndarray]]:
+    """The demo's ground truth of a scene: [(obj_id, T_world_obj (4, 4))]."""
+    kind = "GroundTruth"
+    msg = _unpack(payload, kind, max_bytes)
+    objects = msg.get("objects")
+    if not isinstance(objects, list):
+        raise DecodeError(kind, "field 'objects' must be a list")
+    out = []
+    for o in objects:
+        if not isinstance(o, dict):
+            raise DecodeError(kind, "each object must be a map")
+        T = _floats(o, "T_world_obj", kind, 16).reshape(4, 4)
+        out.append((_int(o, "obj_id", kind), T))
+    return out

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import msgpack
 import numpy as np
 
 from clients.camera import scene_messages
-from service.codec import encode_reset
+from service.codec import decode_groundtruth, encode_groundtruth, encode_reset
+from service.foxglove import FoxgloveMirror
 from service.keys import Keys
 from service.recording import Recorder
 
@@ -26,34 +26,22 @@ def groundtruth_key(cell: str, scene_id: int) -> str:
     return f"{Keys(cell).root}/groundtruth/{scene_id}"
 
 
-def encode_groundtruth(scene_id: int, instances: list[tuple[int, np.ndarray]]) -> bytes:
-    return msgpack.packb(
-        {
-            "v": 1,
-            "scene_id": scene_id,
-            "objects": [
-                {"obj_id": int(o), "T_world_obj": [float(x) for x in T.reshape(-1)]}
-                for o, T in instances
-            ],
-        },
-        use_bin_type=True,
-    )
-
-
-def decode_groundtruth(payload: bytes) -> list[tuple[int, np.ndarray]]:
-    msg = msgpack.unpackb(payload, raw=False)
-    return [
-        (int(o["obj_id"]), np.array(o["T_world_obj"], float).reshape(4, 4)) for o in msg["objects"]
-    ]
-
-
 def make_recording(
-    dataset, scene_ids, out: str | Path, cell: str = "posefuse", rate_hz: float = 2.0, seed: int = 0
+    dataset,
+    scene_ids,
+    out: str | Path,
+    cell: str = "posefuse",
+    rate_hz: float = 2.0,
+    seed: int = 0,
+    catalog=None,
 ) -> Path:
-    """Write the demo recording of ``scene_ids`` of a BOP dataset."""
+    """Write the demo recording of ``scene_ids`` of a BOP dataset, with Foxglove channels (the
+    meshes of ``catalog`` show the ground truth)."""
     keys = Keys(cell)
     t0 = 1_000_000_000_000
-    with Recorder(out, metadata={"cell": cell, "scenes": " ".join(map(str, scene_ids))}) as rec:
+    metadata = {"cell": cell, "scenes": " ".join(map(str, scene_ids))}
+    mirror = FoxgloveMirror(cell, catalog)
+    with Recorder(out, metadata=metadata, mirror=mirror) as rec:
         for n, scene_id in enumerate(scene_ids):
             start = t0 + n * SCENE_GAP_NS
             rec.write(keys.reset, encode_reset(), start - 1)

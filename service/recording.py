@@ -1,4 +1,6 @@
-"""MCAP recordings of a cell: one channel per Zenoh key with the raw msgpack payloads.
+"""MCAP recordings of a cell: one channel per Zenoh key with the raw msgpack payloads, and,
+given a :class:`service.foxglove.FoxgloveMirror`, Foxglove channels (JSON with JSON schemas)
+beside them so the file opens in Foxglove.
 
 Times are integer nanoseconds. ``log_time`` is when the message was seen (the recorder's clock
 for live recordings, the publication schedule for generated ones); replay follows log-time
@@ -39,9 +41,13 @@ class RecordedMessage:
 
 
 class Recorder:
-    """Writes raw key/payload messages to an MCAP file (a context manager)."""
+    """Writes raw key/payload messages to an MCAP file (a context manager).
 
-    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None):
+    With a ``mirror``, each raw message is followed by its Foxglove messages, on channels of
+    their own (message encoding ``json``, schema encoding ``jsonschema``), at the same log time.
+    """
+
+    def __init__(self, path: str | Path, metadata: dict[str, str] | None = None, mirror=None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = self.path.open("wb")
@@ -49,6 +55,9 @@ class Recorder:
         self._writer = Writer(self._file, chunk_size=64 * 1024, compression=CompressionType.ZSTD)
         self._writer.start(PROFILE, "posefuse")
         self._channels: dict[str, int] = {}
+        self._json_channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._mirror = mirror
         self._sequence = 0
         if metadata:
             self._writer.add_metadata("posefuse", {str(k): str(v) for k, v in metadata.items()})
@@ -63,6 +72,26 @@ class Recorder:
             bytes(payload),
             int(log_time_ns),
             self._sequence,
+        )
+        if self._mirror is not None:
+            for m in self._mirror.convert(key, payload, log_time_ns):
+                self.write_json(m.topic, m.schema, m.data(), log_time_ns)
+
+    def write_json(self, topic: str, schema_name: str, data: bytes, log_time_ns: int) -> None:
+        """A JSON message of a schema of :data:`service.foxglove.SCHEMAS` on ``topic``."""
+        from service.foxglove import schema_bytes
+
+        if schema_name not in self._schemas:
+            self._schemas[schema_name] = self._writer.register_schema(
+                schema_name, "jsonschema", schema_bytes(schema_name)
+            )
+        if topic not in self._json_channels:
+            self._json_channels[topic] = self._writer.register_channel(
+                topic, "json", self._schemas[schema_name]
+            )
+        self._sequence += 1
+        self._writer.add_message(
+            self._json_channels[topic], int(log_time_ns), data, int(log_time_ns), self._sequence
         )
 
     def close(self) -> None:

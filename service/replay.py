@@ -9,9 +9,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.codec import DecodeError, decode_reset, estimate_to_dict
+from service.codec import DecodeError, decode_reset, encode_estimate, estimate_to_dict
 from service.daemon import DECODERS
 from service.keys import Keys
+from service.recording import Recorder
 from service.sync import FrameSynchronizer
 from service.worker import EstimatorWorker
 
@@ -26,21 +27,26 @@ class ReplayResult:
 
 
 def replay_offline(
-    messages: Iterable[tuple[str, bytes]],
+    messages: Iterable[tuple[int, str, bytes]],
     worker: EstimatorWorker,
     cell: str = "posefuse",
     sync: FrameSynchronizer | None = None,
     max_payload_bytes: int = 16 * 1024 * 1024,
+    recorder: Recorder | None = None,
 ) -> ReplayResult:
-    """(key, payload) pairs in log-time order -> what the daemon would have published.
+    """(log_time_ns, key, payload) in log-time order -> what the daemon would have published.
 
     Bad messages are counted in ``worker.stats.decode_errors`` and skipped, as live. A reset
-    request recorded on the reset key is carried out (after the frames before it).
+    request recorded on the reset key is carried out (after the frames before it). With a
+    ``recorder``, every message read and every estimate published (on its object key, at the
+    log time of the message that completed the frame) is written to it.
     """
     keys = Keys(cell)
     sync = sync or FrameSynchronizer()
     result = ReplayResult()
-    for key, payload in messages:
+    for log_time, key, payload in messages:
+        if recorder is not None:
+            recorder.write(key, payload, log_time)
         worker.stats.count(worker.stats.received, key)
         if key == keys.reset:
             try:
@@ -66,7 +72,10 @@ def replay_offline(
             continue
         {"info": sync.add_info, "pose": sync.add_pose, "image": sync.add_image}[kind](cam_id, msg)
         while (frame := sync.pop()) is not None:
-            result.published.extend(estimate_to_dict(e) for e in worker.process(frame))
+            for e in worker.process(frame):
+                result.published.append(estimate_to_dict(e))
+                if recorder is not None:
+                    recorder.write(keys.object(e.object_id), encode_estimate(e), log_time)
     result.segments.append([estimate_to_dict(e) for e in worker.snapshot()])
     return result
 

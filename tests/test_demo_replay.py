@@ -10,7 +10,8 @@ import pytest
 from estimator.objects import load_catalog
 from estimator.tracker import MultiViewEstimator
 from service.cli import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
-from service.recording import read_messages
+from service.foxglove import FoxgloveMirror
+from service.recording import Recorder, read_messages
 from service.replay import replay_offline, write_estimates_json
 from service.settings import Settings
 from service.worker import EstimatorWorker, make_detector
@@ -18,23 +19,28 @@ from service.worker import EstimatorWorker, make_detector
 EXPECTED = Path(DEFAULT_RECORDING).with_suffix(".expected.json")
 
 
-def _replay(default_banks):
+def _replay(default_banks, mcap_out=None):
     catalog = load_catalog(DEFAULT_CATALOG)
     settings = Settings(model=DEFAULT_MODEL, catalog=DEFAULT_CATALOG)
     worker = EstimatorWorker(
         MultiViewEstimator(catalog, banks=default_banks), make_detector(settings, catalog)
     )
-    messages = [(m.key, m.payload) for m in read_messages(DEFAULT_RECORDING)]
-    return replay_offline(messages, worker)
+    messages = [(m.log_time_ns, m.key, m.payload) for m in read_messages(DEFAULT_RECORDING)]
+    if mcap_out is None:
+        return replay_offline(messages, worker)
+    with Recorder(mcap_out, mirror=FoxgloveMirror("posefuse", catalog)) as recorder:
+        return replay_offline(messages, worker, recorder=recorder)
 
 
 def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_banks, tmp_path):
-    outputs = []
+    outputs, recordings = [], []
     for k in range(3):
-        result = _replay(default_banks)
+        result = _replay(default_banks, tmp_path / f"r{k}.mcap")
         path = write_estimates_json(tmp_path / f"r{k}.json", result.published, result.segments)
         outputs.append(path.read_bytes())
+        recordings.append((tmp_path / f"r{k}.mcap").read_bytes())
     assert outputs[0] == outputs[1] == outputs[2]
+    assert recordings[0] == recordings[1] == recordings[2]
     got = json.loads(outputs[0])
     expected = json.loads(EXPECTED.read_text())
     assert len(got["updates"]) == len(expected["updates"])

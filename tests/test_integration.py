@@ -70,7 +70,7 @@ def _offline(dataset, messages):
         MultiViewEstimator(dataset.catalog),
         lambda image, stamp: network.detect(image, stamp_seed=stamp),
     )
-    replay_offline(((key, payload) for _, key, payload in messages), worker, "itest")
+    replay_offline(messages, worker, "itest")
     return {e.object_id: estimate_to_dict(e) for e in worker.snapshot()}
 
 
