@@ -68,9 +68,20 @@ def main(argv: list[str] | None = None) -> int:
     n_objects = len(views[0].gts)
     zport, hport = _free_port(), _free_port()
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}",
-         "--http-port", str(hport), "--cell", "bench"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--http-port",
+            str(hport),
+            "--cell",
+            "bench",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     base = f"http://127.0.0.1:{hport}"
@@ -102,14 +113,18 @@ def main(argv: list[str] | None = None) -> int:
                 stamp[0] += 10_000_000
                 s = stamp[0]
                 session.put("bench/@v1/cam/cam0/info", encode_camera_info(s, "cam0", view.camera))
-                session.put("bench/@v1/cam/cam0/pose",
-                            encode_camera_pose(s - 1000, "cam0", view.T_world_cam))
+                session.put(
+                    "bench/@v1/cam/cam0/pose",
+                    encode_camera_pose(s - 1000, "cam0", view.T_world_cam),
+                )
                 msg = msgpack.unpackb(images[k % len(views)])
                 msg["stamp_ns"] = s
                 put_time[s] = time.perf_counter()
                 session.put("bench/@v1/cam/cam0/image", msgpack.packb(msg, use_bin_type=True))
-                session.put("bench/@v1/cam/cam0/pose",
-                            encode_camera_pose(s + 1000, "cam0", view.T_world_cam))
+                session.put(
+                    "bench/@v1/cam/cam0/pose",
+                    encode_camera_pose(s + 1000, "cam0", view.T_world_cam),
+                )
 
             def run(rate: float, n: int) -> dict:
                 before = _get(f"{base}/stats")
@@ -123,23 +138,34 @@ def main(argv: list[str] | None = None) -> int:
                 after = _get(f"{base}/stats")
                 received = after["frames_received"] - before["frames_received"]
                 processed = after["frames_processed"] - before["frames_processed"]
-                return {"rate": rate, "sent": n, "received": received, "processed": processed,
-                        "fraction": processed / n}
+                return {
+                    "rate": rate,
+                    "sent": n,
+                    "received": received,
+                    "processed": processed,
+                    "fraction": processed / n,
+                }
 
             # latency at 1 Hz
             first_update.clear()
             put_time.clear()
             run(1.0, min(args.frames, 20))
             lat = [1000 * (first_update[s] - t) for s, t in put_time.items() if s in first_update]
-            print(f"daemon: posefuse serve, 1280x720 JPEG, {n_objects} objects per view, "
-                  f"{len(views)} views of {args.dataset} scene {args.scene} replayed")
-            print(f"latency image put -> first pose update (1 Hz, {len(lat)} frames): "
-                  f"p50 {np.percentile(lat, 50):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms")
+            print(
+                f"daemon: posefuse serve, 1280x720 JPEG, {n_objects} objects per view, "
+                f"{len(views)} views of {args.dataset} scene {args.scene} replayed"
+            )
+            print(
+                f"latency image put -> first pose update (1 Hz, {len(lat)} frames): "
+                f"p50 {np.percentile(lat, 50):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms"
+            )
             kept = 0.0
             for rate in args.rates:
                 r = run(rate, args.frames)
-                print(f"rate {rate:g} Hz: sent {r['sent']}, received {r['received']}, "
-                      f"processed {r['processed']} ({100 * r['fraction']:.0f}%)")
+                print(
+                    f"rate {rate:g} Hz: sent {r['sent']}, received {r['received']}, "
+                    f"processed {r['processed']} ({100 * r['fraction']:.0f}%)"
+                )
                 if r["fraction"] >= 0.95:
                     kept = rate
             print(f"highest rate kept up with (>= 95% processed): {kept:g} Hz")
@@ -159,9 +185,11 @@ def main(argv: list[str] | None = None) -> int:
                     rss.append(_rss_mb(daemon.pid))
                     next_sample += 5
             stats = _get(f"{base}/stats")
-            print(f"soak {args.soak:.0f} s at {soak_rate:g} Hz ({k} frames): daemon RSS "
-                  f"start {rss[0]:.0f} MB, max {max(rss):.0f} MB, end {rss[-1]:.0f} MB; "
-                  f"dropped {stats['frames_dropped']}")
+            print(
+                f"soak {args.soak:.0f} s at {soak_rate:g} Hz ({k} frames): daemon RSS "
+                f"start {rss[0]:.0f} MB, max {max(rss):.0f} MB, end {rss[-1]:.0f} MB; "
+                f"dropped {stats['frames_dropped']}"
+            )
     finally:
         daemon.terminate()
         daemon.wait(timeout=20)

@@ -185,13 +185,18 @@ class MultiViewEstimator:
         banks: dict[int, TemplateBank] | None = None,
         template_cache_dir: str | None = None,
         show_progress: bool = False,
+        matchers: dict | None = None,
     ):
-        """banks: template banks per obj_id (built, or loaded from the cache, when missing)."""
+        """banks: template banks per obj_id (built, or loaded from the cache, when missing).
+        matchers: rotation matchers per obj_id replacing the default RotationMatcher of the
+        bank (anything with ``.bank`` and ``measure(image, K, t_cam_obj, mask)`` giving
+        RotationMeasurements; the benchmarks use it for the multi-scale ablation)."""
         self.catalog = catalog
         self.config = config or TrackerConfig()
         self._matchers = {
             k: RotationMatcher(b, self.config.rotation) for k, b in (banks or {}).items()
         }
+        self._matchers.update(matchers or {})
         self._template_cache_dir = template_cache_dir
         self._show_progress = show_progress
         self._images: dict[int, np.ndarray] = {}  # stamp_ns -> image, the last few frames

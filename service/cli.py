@@ -14,6 +14,7 @@ from estimator.errors import PosefuseError
 
 # The procedural catalog committed with the project (found beside the packages in a checkout).
 DEFAULT_CATALOG = str(Path(__file__).resolve().parents[1] / "catalogs" / "robi_like")
+DEFAULT_BENCHMARKS = str(Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md")
 DEFAULT_RECORDING = str(Path(__file__).resolve().parents[1] / "recordings" / "demo.mcap")
 # The front end trained on it, shipped with the project.
 DEFAULT_MODEL = str(Path(__file__).resolve().parents[1] / "models" / "robi_like.onnx")
@@ -588,6 +589,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from bench.paper_tables import main as bench_main
+
+    return bench_main(args)
+
+
 def _cmd_quickstart(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
     from estimator.evaluation import evaluate, ground_truth_results, read_results, write_results
@@ -789,6 +796,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=900)
     p.set_defaults(func=_cmd_make_demo)
 
+    p = sub.add_parser("bench", help="the paper's Tables I and II into docs/benchmarks.md")
+    p.add_argument("--dataset", required=True, help="a BOP dataset; rendered there if absent")
+    p.add_argument("--quick", action="store_true", help="2 small scenes (CI)")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG)
+    p.add_argument("--out", default=DEFAULT_BENCHMARKS, help="the Markdown page (and .json)")
+    p.set_defaults(func=_cmd_bench)
+
     p = sub.add_parser("demo", help="replay the demo recording through the daemon and score it")
     _add_transport_args(p)
     p.add_argument("--recording", default=DEFAULT_RECORDING)
@@ -806,7 +820,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    args.argv = argv[1:]  # what followed the command, for reports that name their command
     try:
         return int(args.func(args) or 0)
     except PosefuseError as exc:

@@ -38,8 +38,5 @@ def default_banks(robi_catalog, tmp_path_factory):
     """Template banks of the committed catalog at the default parameters (~1 min to build)."""
     from estimator.templates import build_template_bank
 
-    cache = tmp_path_factory.mktemp("templates")
-    return {
-        k: build_template_bank(m, cache_dir=cache, show_progress=False)
-        for k, m in robi_catalog.items()
-    }
+    # the session's POSEFUSE_CACHE, so commands run by the tests find them too
+    return {k: build_template_bank(m, show_progress=False) for k, m in robi_catalog.items()}
