@@ -32,6 +32,11 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 from estimator.geometry import so3_exp
 from estimator.rotation import RotationMatcher, RotationMeasurement, ray_correction
 
+# candidate matching thresholds, x diameter: the best of 0.1-2.4 for each baseline on the
+# full benchmark's data (RGB candidates are off in depth by up to the template spacing, so they
+# only fuse with a loose gate; with depth, a tight gate keeps instances apart)
+MATCH_THRESHOLD_RGB = 1.2
+MATCH_THRESHOLD_RGBD = 0.2
 N_DISTANCES = 9
 DISTANCES = np.geomspace(0.45, 0.95, N_DISTANCES)  # metres: the bin cell's working range
 

@@ -2,7 +2,7 @@
 
     posefuse bench --dataset DIR [--quick] [--out docs/benchmarks.md]
 
-When DIR holds no dataset, it is rendered first (full: 20 scenes x 8 views at 1280x720,
+When DIR holds no dataset, it is rendered first (full: 50 scenes x 8 views at 1280x720,
 seed 300; quick: 2 scenes x 8 views at 640x360, seed 301). Every method sees the same
 detections (the oracle front end: the true centers with 2 px of noise and the visible masks,
 seed 0) and scores the same LINE-2D features:
@@ -29,6 +29,8 @@ import numpy as np
 from tqdm import tqdm
 
 from bench.baselines import (
+    MATCH_THRESHOLD_RGB,
+    MATCH_THRESHOLD_RGBD,
     Candidate,
     ClassGeometry,
     DepthAligner,
@@ -45,7 +47,7 @@ from estimator.run_dataset import run_dataset
 from estimator.tracker import MultiViewEstimator
 
 CHECKPOINTS = (4, 8)
-FULL = {"scenes": 20, "views": 8, "seed": 300, "width": 1280, "height": 720}
+FULL = {"scenes": 50, "views": 8, "seed": 300, "width": 1280, "height": 720}
 QUICK = {"scenes": 2, "views": 8, "seed": 301, "width": 640, "height": 360}
 ORACLE = OracleConfig(center_sigma_px=2.0, seed=0)
 METHODS = ("cosypose_rgb", "cosypose_rgbd", "ours", "simultaneous")
@@ -156,7 +158,8 @@ def _run_cosypose(dataset, banks, use_depth: bool, progress: bool) -> MethodRun:
             if count not in CHECKPOINTS:
                 continue
             run.targets[count].append((scene_id, im_id))
-            for obj in fuse_candidates(candidates, geometries):
+            threshold = MATCH_THRESHOLD_RGBD if use_depth else MATCH_THRESHOLD_RGB
+            for obj in fuse_candidates(candidates, geometries, threshold):
                 T_cam_obj = view.T_cam_world @ obj.T_world_obj
                 run.results[count].append(
                     PoseResult(scene_id, im_id, obj.obj_id, obj.score, T_cam_obj)
@@ -192,8 +195,46 @@ def score_runs(dataset, runs: dict[str, MethodRun]) -> dict:
         }
         every = [t for v in run.matching_s.values() for t in v]
         ms["all"] = float(np.median(every)) * 1000 if every else float("nan")
-        out[name] = {"rates": rates, "ms": ms, "calls": len(every), "seconds": run.seconds}
+        closest = {n: closest_errors(dataset, run, n) for n in CHECKPOINTS}
+        out[name] = {
+            "rates": rates,
+            "ms": ms,
+            "calls": len(every),
+            "seconds": run.seconds,
+            "closest": closest,
+        }
     return out
+
+
+def closest_errors(dataset, run: MethodRun, n: int) -> dict[str, int]:
+    """Each scored instance by the ADD(-S) of the closest estimate of its class in its view:
+    below 0.1 d, 0.1-0.5 d (estimated, inaccurate), none within 0.5 d (not estimated)."""
+    from estimator.evaluation import pose_error
+
+    by_view: dict[tuple[int, int, int], list[PoseResult]] = {}
+    for r in run.results[n]:
+        by_view.setdefault((r.scene_id, r.im_id, r.obj_id), []).append(r)
+    counts = {"within_0.1d": 0, "0.1d_to_0.5d": 0, "none_within_0.5d": 0}
+    for scene_id, im_id in run.targets[n]:
+        view = dataset.scene(scene_id).view(im_id)
+        for gt in view.gts:
+            if gt.visib_fract <= 0.75:
+                continue
+            model = dataset.catalog[gt.obj_id]
+            errors = [
+                pose_error(model, r.T_cam_obj, gt.T_cam_obj)
+                for r in by_view.get((scene_id, im_id, gt.obj_id), [])
+            ]
+            best = min(errors, default=np.inf) / model.diameter
+            key = (
+                "within_0.1d"
+                if best < 0.1
+                else "0.1d_to_0.5d"
+                if best < 0.5
+                else "none_within_0.5d"
+            )
+            counts[key] += 1
+    return counts
 
 
 def _pct(x: float) -> str:
@@ -302,7 +343,51 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
             f"| {LABELS[m]} | {scores[m]['seconds']:.0f} | {scores[m]['calls']} | "
             f"{_ms(scores[m]['ms']['all'])} |"
         )
-    lines += ["", *meta.get("notes", [])]
+    lines += [
+        "",
+        "## Where the misses come from",
+        "",
+        "Each scored instance by the ADD(-S) error of the closest estimate of its class in its "
+        "view: an accurate estimate (< 0.1 d), an inaccurate one (0.1-0.5 d), or none within "
+        "0.5 d (the part was not estimated, or not fused into one object).",
+        "",
+        "| method | views | < 0.1 d | 0.1-0.5 d | none within 0.5 d |",
+        "|---|---|---|---|---|",
+    ]
+    for m in METHODS:
+        for n in CHECKPOINTS:
+            k = scores[m]["closest"][n]
+            lines.append(
+                f"| {LABELS[m]} | {n} | {k['within_0.1d']} | {k['0.1d_to_0.5d']} | "
+                f"{k['none_within_0.5d']} |"
+            )
+    lines += [
+        "",
+        "## How the baselines are set up",
+        "",
+        "- All methods use the same LINE-2D features (162 viewpoints x 36 in-plane rotations, "
+        "63 features, the fundamental region of each part's symmetries) and the same masks.",
+        "- Templates at 9 distances (0.45-0.95 m, geometric spacing) are the canonical bank's "
+        "features scaled about the center, as rendering at another distance gives under weak "
+        "perspective.",
+        "- CosyPose-style fusion with the cameras known: candidates of a class in different "
+        "views are matched by symmetric pose distance (threshold "
+        f"{MATCH_THRESHOLD_RGB:g} x diameter for RGB, {MATCH_THRESHOLD_RGBD:g} x diameter for "
+        "RGBD: for each, the best of 0.1, 0.2, 0.4, 0.8, 1.2, 1.6, 2.4 tried on the first 20 "
+        "scenes of the full dataset, i.e. tuned in the baseline's favour), one candidate per "
+        "view joins the highest-scoring seed, and objects seen in two views or more are "
+        "refined by minimising the symmetric reprojection error of 50 model points over their "
+        "views.",
+        "- RGBD: the median sensor depth in the mask (the sensor has holes on shiny metal) "
+        "places the part, the rotation is matched at that scale, and the part is moved along "
+        "its ray until its rendered depth fits the measured one (twice).",
+        "- Ours and the simultaneous ablation share the tracker; they differ only in the "
+        "rotation measurement. Ours measures rotations once the translation's depth is known "
+        "to 5%, so at 4 views some parts have fewer rotation measurements than the per-view "
+        "baselines, which have a 6D pose from the first view.",
+        "",
+        *meta.get("notes", []),
+    ]
     return "\n".join(lines).rstrip() + "\n"
 
 
