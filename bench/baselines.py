@@ -30,7 +30,12 @@ from scipy.optimize import least_squares
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from estimator.geometry import so3_exp
-from estimator.rotation import RotationMatcher, RotationMeasurement, ray_correction
+from estimator.rotation import (
+    RotationMatcher,
+    RotationMeasurement,
+    ray_correction,
+    select_hypotheses,
+)
 
 # candidate matching thresholds, x diameter: the best of 0.1-2.4 for each baseline on the
 # full benchmark's data (RGB candidates are off in depth by up to the template spacing, so they
@@ -106,10 +111,9 @@ class MultiScaleMatcher:
         if t_cam_obj[2] <= 0:
             return []
         uv = K[:2, :2] @ (t_cam_obj[:2] / t_cam_obj[2]) + K[:2, 2]
-        _, k, score = self.best(image, K, uv, mask)
-        if score < self.config.min_confidence:
-            return []
-        return [RotationMeasurement(ray_correction(t_cam_obj) @ self.bank.R_cam_obj[k], score, k)]
+        best_distance = self.scores(image, K, uv, mask).max(0)  # (N,) the best of 9 distances
+        R_ray = ray_correction(t_cam_obj)
+        return select_hypotheses(best_distance, self.bank.R_cam_obj, R_ray, self.config)
 
 
 class TimedMatcher:
