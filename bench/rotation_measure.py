@@ -8,10 +8,8 @@ the true translation and the visible mask (what the translation step and the fro
 - two-step (ours): scale-aware re-crop to l_r = 128 px, LINE-2D responses, the bank scored at
   the known center;
 - multi-scale ("simultaneous" ablation of the paper): no re-crop; the RoI is cut at the image's
-  own scale, large enough for the nearest part, and the templates at 9 distances are scored at
-  the known center. The 9 scales are made from the canonical bank by scaling its feature
-  positions about the center (what rendering at another distance gives under weak
-  perspective), so both variants score the same features;
+  own scale, large enough for the nearest part, and the templates at 9 distances
+  (bench.baselines.MultiScaleMatcher) are scored at the known center;
 - for reference, ``cv2.linemod.Detector.match`` of the single-scale bank on the re-cropped RoI
   (it searches every position).
 
@@ -24,54 +22,12 @@ import argparse
 import time
 from collections import defaultdict
 
-import cv2
 import numpy as np
 
+from bench.baselines import MultiScaleMatcher
 from estimator.dataset import load_dataset
 from estimator.rotation import RotationMatcher, crop_roi
 from estimator.templates import build_template_bank, make_detector
-
-N_SCALES = 9
-DEPTHS = np.linspace(0.5, 0.9, N_SCALES)  # metres: the working range of the bin cell
-
-
-class MultiScaleScorer:
-    """The bank at 9 distances, scored at the center of an RoI at the image's scale."""
-
-    def __init__(self, matcher: RotationMatcher, focal: float):
-        bank = matcher.bank
-        cfg = bank.config
-        self.matcher = matcher
-        # apparent scale of the part at each depth relative to the canonical template
-        scales = bank.z_r / DEPTHS * (focal / cfg.focal)
-        c = (cfg.roi_size - 1) / 2.0
-        self.size = int(np.ceil(cfg.roi_size * scales.max() / 8.0) * 8)
-        C = (self.size - 1) / 2.0
-        idx, w = [], []
-        for s in scales:
-            x = np.clip(np.round((bank.feat_x - c) * s + C), 0, self.size - 1).astype(np.int64)
-            y = np.clip(np.round((bank.feat_y - c) * s + C), 0, self.size - 1).astype(np.int64)
-            idx.append(bank.feat_label.astype(np.int64) * self.size**2 + y * self.size + x)
-            w.append(matcher._weight)
-        self.index = np.concatenate(idx)  # (9N, F)
-        self.weight = np.concatenate(w)
-
-    def crop(self, image, K, t_cam):
-        u = K[0, 0] * t_cam[0] / t_cam[2] + K[0, 2]
-        v = K[1, 1] * t_cam[1] / t_cam[2] + K[1, 2]
-        C = (self.size - 1) / 2.0
-        A = np.array([[1.0, 0.0, C - u], [0.0, 1.0, C - v]])
-        roi = cv2.warpAffine(
-            cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
-            A,
-            (self.size, self.size),
-            borderMode=cv2.BORDER_REPLICATE,
-        )
-        return roi, A
-
-    def scores(self, roi, roi_mask):
-        response = self.matcher.response_maps(roi, roi_mask).reshape(-1)
-        return (response[self.index] * self.weight).sum(1)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -82,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     ds = load_dataset(args.dataset)
     matchers = {k: RotationMatcher(build_template_bank(m)) for k, m in ds.catalog.items()}
-    multi: dict[int, MultiScaleScorer] = {}
+    multi: dict[int, MultiScaleMatcher] = {}
     times = defaultdict(list)
     per_object: dict[int, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
     n = 0
@@ -104,15 +60,10 @@ def main(argv: list[str] | None = None) -> int:
             per_object[gt.obj_id]["two-step"].append(times["two-step"][-1])
 
             if gt.obj_id not in multi:
-                multi[gt.obj_id] = MultiScaleScorer(matcher, 0.5 * (K[0, 0] + K[1, 1]))
-            ms = multi[gt.obj_id]
+                multi[gt.obj_id] = MultiScaleMatcher(matcher)
             start = time.perf_counter()
-            big, A = ms.crop(image, K, t_cam)
-            big_mask = cv2.warpAffine(
-                mask.astype(np.uint8) * 255, A, (ms.size, ms.size), flags=cv2.INTER_NEAREST
-            )
-            big_mask = cv2.dilate(big_mask, np.ones((7, 7), np.uint8))
-            int(np.argmax(ms.scores(big, big_mask)))
+            uv = K[:2, :2] @ (t_cam[:2] / t_cam[2]) + K[:2, 2]
+            int(np.argmax(multi[gt.obj_id].scores(image, K, uv, mask)))
             times["multi-scale"].append(time.perf_counter() - start)
             per_object[gt.obj_id]["multi-scale"].append(times["multi-scale"][-1])
 
