@@ -58,16 +58,47 @@ class RotationComponent:
         return len(self.members) + self.retired
 
 
-def _axis_angle_optimum(M: np.ndarray, axis: np.ndarray) -> float:
+def _axis_angle_optimum(M: np.ndarray, axis: np.ndarray) -> np.ndarray:
     """theta maximising trace(M @ Rot(axis, theta)) (the closest rotation about ``axis``).
 
     trace(M Rot) = cos(t) (tr M - a^T M a) + sin(t) tr(M hat(a)) + a^T M a.
+
+    Args:
+        M: (..., 3, 3). axis: (3,) unit.
+    Returns:
+        (...) angles in radians.
     """
     a = axis
-    A = np.trace(M) - a @ M @ a
+    A = np.trace(M, axis1=-2, axis2=-1) - np.einsum("i,...ij,j->...", a, M, a)
     hat_a = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    B = np.trace(M @ hat_a)
-    return float(np.arctan2(B, A))
+    B = np.trace(M @ hat_a, axis1=-2, axis2=-1)
+    return np.arctan2(B, A)
+
+
+def closest_equivalents(
+    R_meas: np.ndarray,
+    R_ref: np.ndarray,
+    discrete: np.ndarray,
+    continuous_axes: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each of M rotations, its symmetric equivalent ``R_meas @ S`` closest to ``R_ref``.
+
+    Args:
+        R_meas: (M, 3, 3) R_world_obj. R_ref: (3, 3). discrete: (D, 3, 3) object-frame
+        symmetry rotations with the identity. continuous_axes: (A, 3) unit axes in the object
+        frame (A = 0 or 1).
+    Returns:
+        (M, 3, 3) the closest equivalents and (M,) their angles to R_ref in radians.
+    """
+    candidates = np.einsum("mij,djk->mdik", R_meas, discrete)  # (M, D, 3, 3)
+    if len(continuous_axes):
+        a = continuous_axes[0]
+        theta = _axis_angle_optimum(np.einsum("ji,mdjk->mdik", R_ref, candidates), a)
+        candidates = candidates @ so3_exp(theta[..., None] * a)
+    angles = rotation_angle(np.einsum("ji,mdjk->mdik", R_ref, candidates))  # (M, D)
+    k = np.argmin(angles, axis=1)
+    rows = np.arange(len(candidates))
+    return candidates[rows, k], angles[rows, k]
 
 
 def closest_equivalent(
@@ -76,23 +107,10 @@ def closest_equivalent(
     discrete: np.ndarray,
     continuous_axes: np.ndarray,
 ) -> tuple[np.ndarray, float]:
-    """The symmetric equivalent ``R_meas @ S`` closest to ``R_ref``, and its angle.
-
-    Args:
-        R_meas, R_ref: (3, 3) R_world_obj. discrete: (D, 3, 3) object-frame symmetry rotations
-        with the identity. continuous_axes: (A, 3) unit axes in the object frame (A = 0 or 1).
-    """
-    candidates = np.einsum("ij,djk->dik", R_meas, discrete)  # (D, 3, 3)
-    if len(continuous_axes):
-        a = continuous_axes[0]
-        out = []
-        for C in candidates:
-            theta = _axis_angle_optimum(R_ref.T @ C, a)
-            out.append(C @ so3_exp(a * theta))
-        candidates = np.array(out)
-    angles = rotation_angle(np.einsum("ji,djk->dik", R_ref, candidates))
-    k = int(np.argmin(angles))
-    return candidates[k], float(angles[k])
+    """The symmetric equivalent ``R_meas @ S`` (R_meas (3, 3)) closest to ``R_ref``, and its
+    angle: :func:`closest_equivalents` of one rotation."""
+    R, angle = closest_equivalents(R_meas[None], R_ref, discrete, continuous_axes)
+    return R[0], float(angle[0])
 
 
 class RotationMixture:
@@ -157,16 +175,14 @@ class RotationMixture:
         cfg = self.config
         R_mean = comp.R_world_obj
         info_scale = 1.0 / np.deg2rad(cfg.sigma_deg) ** 2
+        R_members = np.array([R for R, _ in comp.members])  # (M, 3, 3)
+        conf = np.array([c for _, c in comp.members])  # (M,)
         for _ in range(cfg.max_iterations):
-            H = np.zeros((3, 3))
-            g = np.zeros(3)
-            for R_k, c in comp.members:
-                R_eq, _ = closest_equivalent(R_k, R_mean, self.discrete, self.continuous_axes)
-                r = so3_log(R_eq @ R_mean.T)
-                J = so3_right_jacobian_inv(r)
-                H += c * J.T @ J
-                g += c * J.T @ r
-            H += 1e-9 * np.eye(3)
+            R_eq, _ = closest_equivalents(R_members, R_mean, self.discrete, self.continuous_axes)
+            r = so3_log(R_eq @ R_mean.T)  # (M, 3)
+            J = so3_right_jacobian_inv(r)  # (M, 3, 3)
+            H = np.einsum("m,mji,mjk->ik", conf, J, J) + 1e-9 * np.eye(3)
+            g = np.einsum("m,mji,mj->i", conf, J, r)
             delta = np.linalg.solve(H, g)
             R_mean = so3_exp(delta) @ R_mean
             if np.linalg.norm(delta) < cfg.tolerance_rad:

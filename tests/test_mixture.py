@@ -6,7 +6,12 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from estimator.geometry import rotation_angle, so3_exp
-from estimator.mixture import MixtureConfig, RotationMixture, closest_equivalent
+from estimator.mixture import (
+    MixtureConfig,
+    RotationMixture,
+    closest_equivalent,
+    closest_equivalents,
+)
 from estimator.objects import make_model
 
 DEG = np.pi / 180
@@ -132,3 +137,16 @@ def test_deterministic_and_refuses_bad_confidence():
     np.testing.assert_array_equal(wa, wb)
     with pytest.raises(ValueError, match="confidence"):
         RotationMixture().add(np.eye(3), float("nan"))
+
+
+def test_batched_closest_equivalents_match_one_at_a_time():
+    """The refinement uses the batched form; it must pick what the single form picks."""
+    R_ref = Rotation.random(random_state=10).as_matrix()
+    R_meas = Rotation.random(7, random_state=11).as_matrix()
+    flips = np.stack([np.eye(3), np.diag([-1.0, 1.0, -1.0])])
+    for discrete, axes in ((flips, np.zeros((0, 3))), (flips, np.array([[0.0, 0.0, 1.0]]))):
+        batch, angles = closest_equivalents(R_meas, R_ref, discrete, axes)
+        for k in range(len(R_meas)):
+            one, angle = closest_equivalent(R_meas[k], R_ref, discrete, axes)
+            np.testing.assert_allclose(batch[k], one, atol=1e-12)
+            assert angles[k] == pytest.approx(angle, abs=1e-12)
