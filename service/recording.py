@@ -19,6 +19,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from estimator.errors import PosefuseError
+from service.foxglove import schema_bytes
 
 RAW_ENCODING = "msgpack"
 PROFILE = "posefuse"
@@ -79,8 +80,6 @@ class Recorder:
 
     def write_json(self, topic: str, schema_name: str, data: bytes, log_time_ns: int) -> None:
         """A JSON message of a schema of :data:`service.foxglove.SCHEMAS` on ``topic``."""
-        from service.foxglove import schema_bytes
-
         if schema_name not in self._schemas:
             self._schemas[schema_name] = self._writer.register_schema(
                 schema_name, "jsonschema", schema_bytes(schema_name)
