@@ -1,15 +1,22 @@
-"""Pose errors as bop_toolkit defines them, BOP result files, and the ADD(-S) detection rate.
+"""BOP result files, pose errors of ObjectModels, and detection rates with matching as BOP does.
 
-- ADD: mean distance between the model points under the estimated and the true pose.
-- ADI (ADD-S): mean distance from each estimated point to the closest true point.
-- MSSD: the maximum point distance, minimised over the object's symmetries.
-- ADD(-S): ADI for objects with any symmetry, ADD otherwise (as the ROBI and BOP papers do).
+Errors (``estimator.pose_error``, equal to bop_toolkit's) are evaluated on each model's
+``eval_points`` with its ``eval_symmetries`` (BOP's transformations, ``max_sym_disc_step =
+0.01``). Every report gives, for the instances with ``visib_fract > min_visib`` (0.75, the
+paper's protocol):
 
-The detection rate follows the paper's protocol: an annotated instance with ``visib_fract``
-above ``min_visib`` is found when an estimate of its class in that view has error below
-``threshold * diameter``. Estimates are matched greedily in order of decreasing score, each to
-the unmatched annotation (of any visibility) with the smallest error, so one estimate finds at
-most one instance; estimates matched to barely visible instances neither count nor hurt.
+- **ADD-sym < 0.1 d**: the headline (the paper's ADD < 0.1 d, symmetric answers not punished);
+- **MSSD < 0.1 d**, and **AR_MSSD**: BOP's mean recall over MSSD thresholds 0.05-0.5 d;
+- **precision**: of the estimates, the share that found a scored instance (at ADD-sym < 0.1 d);
+- **ADI < 0.1 d**, labelled lenient: it forgives wrong rotations (a random rotation with the
+  true center passes for 18-50% of our parts) and is never a headline.
+
+Matching, for each metric and threshold, as BOP's ``pose_matching.match_poses``: in each view
+and class, estimates are visited in order of decreasing score; each takes the not yet matched
+annotated instance (of any visibility) with the smallest error, and is a match when that error
+is below the threshold. A match to an instance with ``visib_fract <= min_visib`` neither counts
+nor hurts (BOP's invalid ground truth); an estimate that matches nothing is a false positive.
+So a method that outputs several guesses per part pays for it in precision.
 """
 
 from __future__ import annotations
@@ -24,32 +31,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from estimator.errors import ResultsError
+from estimator.pose_error import transform_points
 
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
-
-
-def _apply(T: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    return pts @ T[:3, :3].T + T[:3, 3]
-
-
-def add_error(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:
-    """ADD. T_est, T_gt: (4, 4); pts: (N, 3) model points, same unit as the translations."""
-    return float(np.linalg.norm(_apply(T_est, pts) - _apply(T_gt, pts), axis=1).mean())
-
-
-def adi_error(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:
-    """ADI (ADD-S): mean closest-point distance from estimated to true model points."""
-    dist, _ = cKDTree(_apply(T_gt, pts)).query(_apply(T_est, pts), k=1)
-    return float(dist.mean())
-
-
-def mssd_error(
-    T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray, symmetries: np.ndarray
-) -> float:
-    """MSSD. symmetries: (S, 4, 4) with the identity, continuous axes discretised."""
-    est = _apply(T_est, pts)
-    errors = [np.linalg.norm(est - _apply(T_gt @ S, pts), axis=1).max() for S in symmetries]
-    return float(min(errors))
+METRICS = ("add_sym", "mssd", "adi")
+HEADLINE = "add_sym"
+METRIC_LABELS = {"add_sym": "ADD-sym", "mssd": "MSSD", "adi": "ADI (lenient)"}
+AR_THRESHOLDS = tuple(round(0.05 * k, 2) for k in range(1, 11))  # of the diameter
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,87 +131,217 @@ def ground_truth_results(dataset) -> list[PoseResult]:
     ]
 
 
+def _check_metric(metric: str) -> None:
+    if metric not in METRICS:
+        raise ValueError(f"metric must be one of {', '.join(METRICS)}, got {metric!r}")
+
+
+def error_matrix(
+    model,
+    T_est: np.ndarray,
+    T_gt: np.ndarray,
+    metric: str = HEADLINE,
+    cutoff: float | None = None,
+) -> np.ndarray:
+    """(E, G) errors in metres of E estimates against G true poses of one ObjectModel.
+
+    T_est: (E, 4, 4), T_gt: (G, 4, 4) ``T_cam_obj``. Equal, entry by entry, to
+    ``estimator.pose_error`` on ``model.eval_points`` and ``model.eval_symmetries``. With a
+    ``cutoff`` (metres), ADD-sym and MSSD entries below it are exact and those at or above it are
+    only known to be there (``inf``, or a value above the true one: symmetries whose lower bound
+    passes the cutoff are not computed).
+    """
+    _check_metric(metric)
+    T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
+    T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
+    pts = model.eval_points
+    out = np.full((len(T_est), len(T_gt)), np.inf)
+    if out.size == 0:
+        return out
+    if metric == "adi":  # pose_error.adi: from each true point to the closest estimated one
+        est = transform_points(T_est, pts)  # (E, N, 3)
+        gt = transform_points(T_gt, pts)  # (G, N, 3)
+        for e in range(len(T_est)):
+            dist, _ = cKDTree(est[e]).query(gt.reshape(-1, 3), k=1)
+            out[e] = dist.reshape(len(T_gt), -1).mean(axis=1)
+        return out
+    # Distances are invariant under rigid motion: |T_gt S p - T_est p| = |A p - p| with
+    # A = inv(T_est) T_gt S, so each (estimate, truth, symmetry) costs one 3x3 map of the points.
+    A = np.linalg.inv(T_est)[:, None, None] @ T_gt[None, :, None] @ model.eval_symmetries
+    M = A[..., :3, :3] - np.eye(3)  # (E, G, S, 3, 3)
+    t = A[..., :3, 3]  # (E, G, S, 3)
+    # the mean distance is at least the distance of the means (Jensen), and the max at least
+    # the mean: a lower bound of both errors for every symmetry
+    bound = np.linalg.norm(M @ pts.mean(axis=0) + t, axis=-1)  # (E, G, S)
+    reduce = np.mean if metric == "add_sym" else np.max
+    for e in range(len(T_est)):
+        for g in range(len(T_gt)):
+            keep = np.ones(bound.shape[2], dtype=bool) if cutoff is None else bound[e, g] < cutoff
+            if not keep.any():
+                continue
+            diff = pts @ M[e, g, keep].transpose(0, 2, 1) + t[e, g, keep, None, :]  # (K, N, 3)
+            out[e, g] = reduce(np.sqrt(np.einsum("knj,knj->kn", diff, diff)), axis=1).min()
+    return out
+
+
+def pose_error(model, T_est: np.ndarray, T_gt: np.ndarray, metric: str = HEADLINE) -> float:
+    """One error in metres of one estimate of an ObjectModel: ``add_sym`` (default), ``mssd``
+    or ``adi``. T_est, T_gt: (4, 4) ``T_cam_obj``."""
+    return float(error_matrix(model, T_est[None], T_gt[None], metric)[0, 0])
+
+
+def match_estimates(errors: np.ndarray, limit: float) -> list[tuple[int, int]]:
+    """BOP's greedy matching. errors: (E, G) with the estimates sorted by decreasing score;
+    returns the (estimate, instance) matches with error below ``limit``."""
+    free = np.ones(errors.shape[1], dtype=bool)
+    matches = []
+    for e in range(errors.shape[0]):
+        if not free.any():
+            break
+        row = np.where(free, errors[e], np.inf)
+        g = int(np.argmin(row))
+        if row[g] < limit:
+            free[g] = False
+            matches.append((e, g))
+    return matches
+
+
 @dataclass
 class ObjectScore:
+    """Counts of one class. found / ignored: per metric, at the report's threshold; found_ar:
+    instances found at each AR_THRESHOLDS step of MSSD."""
+
     obj_id: int
     name: str
     n_instances: int = 0  # annotated instances above min_visib
-    n_found: int = 0
     n_estimates: int = 0
+    found: dict[str, int] = field(default_factory=lambda: dict.fromkeys(METRICS, 0))
+    ignored: dict[str, int] = field(default_factory=lambda: dict.fromkeys(METRICS, 0))
+    found_ar: list[int] = field(default_factory=lambda: [0] * len(AR_THRESHOLDS))
 
     @property
-    def rate(self) -> float:
-        return self.n_found / self.n_instances if self.n_instances else float("nan")
+    def n_found(self) -> int:
+        return self.found[HEADLINE]
+
+    def rate(self, metric: str = HEADLINE) -> float:
+        return self.found[metric] / self.n_instances if self.n_instances else float("nan")
+
+    def precision(self, metric: str = HEADLINE) -> float:
+        """Found instances per estimate, estimates matched to barely visible parts left out."""
+        scored = self.n_estimates - self.ignored[metric]
+        return self.found[metric] / scored if scored > 0 else float("nan")
+
+    @property
+    def ar_mssd(self) -> float:
+        if not self.n_instances:
+            return float("nan")
+        return float(np.mean(self.found_ar)) / self.n_instances
+
+    def add(self, other: ObjectScore) -> None:
+        self.n_instances += other.n_instances
+        self.n_estimates += other.n_estimates
+        for m in METRICS:
+            self.found[m] += other.found[m]
+            self.ignored[m] += other.ignored[m]
+        self.found_ar = [a + b for a, b in zip(self.found_ar, other.found_ar, strict=True)]
 
 
 @dataclass
 class EvaluationReport:
-    metric: str
     threshold: float
     min_visib: float
     objects: dict[int, ObjectScore] = field(default_factory=dict)
 
     @property
+    def total(self) -> ObjectScore:
+        """Every class pooled (rates over all instances, as BOP pools them)."""
+        total = ObjectScore(0, "all")
+        for o in self.objects.values():
+            total.add(o)
+        return total
+
+    @property
     def n_instances(self) -> int:
-        return sum(o.n_instances for o in self.objects.values())
+        return self.total.n_instances
 
     @property
     def n_found(self) -> int:
-        return sum(o.n_found for o in self.objects.values())
+        return self.total.n_found
 
     @property
     def rate(self) -> float:
-        return self.n_found / self.n_instances if self.n_instances else float("nan")
+        """The headline: ADD-sym < threshold x diameter."""
+        return self.total.rate()
+
+    def row(self, key: int | str) -> ObjectScore:
+        return self.total if key == "all" else self.objects[int(key)]
 
     def to_markdown(self) -> str:
-        name = "ADD(-S)" if self.metric == "adds" else "MSSD"
+        t = f"{self.threshold:g}d"
         lines = [
-            f"| obj_id | name | instances (visib > {self.min_visib:g}) | estimates | found | "
-            f"{name}-{self.threshold:g}d |",
-            "|---|---|---|---|---|---|",
+            f"| obj_id | name | instances (visib > {self.min_visib:g}) | estimates | "
+            f"ADD-sym-{t} | MSSD-{t} | AR_MSSD | precision | ADI-{t} (lenient) |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
-        for o in self.objects.values():
+        for o in [*self.objects.values(), self.total]:
             lines.append(
-                f"| {o.obj_id} | {o.name} | {o.n_instances} | {o.n_estimates} | {o.n_found} | "
-                f"{_percent(o.rate)} |"
+                f"| {o.obj_id if o.name != 'all' else 'all'} | {o.name if o.name != 'all' else ''} "
+                f"| {o.n_instances} | {o.n_estimates} | {_percent(o.rate())} "
+                f"({o.found['add_sym']}) | {_percent(o.rate('mssd'))} | {_percent(o.ar_mssd)} | "
+                f"{_percent(o.precision())} | {_percent(o.rate('adi'))} |"
             )
-        lines.append(
-            f"| all | | {self.n_instances} | {sum(o.n_estimates for o in self.objects.values())}"
-            f" | {self.n_found} | {_percent(self.rate)} |"
-        )
         return "\n".join(lines)
 
     def to_json(self) -> dict:
+        def entry(o: ObjectScore) -> dict:
+            return {
+                "name": o.name,
+                "instances": o.n_instances,
+                "estimates": o.n_estimates,
+                "found": dict(o.found),
+                "add_sym": o.rate(),
+                "mssd": o.rate("mssd"),
+                "ar_mssd": o.ar_mssd,
+                "precision": o.precision(),
+                "adi": o.rate("adi"),
+            }
+
         return {
-            "metric": self.metric,
+            "headline": f"ADD-sym < {self.threshold:g} d",
             "threshold": self.threshold,
             "min_visib": self.min_visib,
-            "rate": self.rate,
-            "objects": {
-                str(o.obj_id): {
-                    "name": o.name,
-                    "instances": o.n_instances,
-                    "estimates": o.n_estimates,
-                    "found": o.n_found,
-                    "rate": o.rate,
-                }
-                for o in self.objects.values()
-            },
+            "ar_thresholds": list(AR_THRESHOLDS),
+            "all": entry(self.total),
+            "objects": {str(o.obj_id): entry(o) for o in self.objects.values()},
         }
+
+
+def checkpoint_markdown(reports: dict[int, EvaluationReport], per_object: bool = True) -> str:
+    """One table of reports taken after different numbers of views: a row per object (and all)
+    and number of views; headline first, the lenient ADI last."""
+    first = next(iter(reports.values()), None)
+    if first is None:
+        return "(no view scored)"
+    t = f"{first.threshold:g}d"
+    lines = [
+        f"| object | views | instances | estimates | ADD-sym-{t} | MSSD-{t} | AR_MSSD | "
+        f"precision | ADI-{t} (lenient) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n, report in sorted(reports.items()):
+        rows = [*report.objects.values()] if per_object else []
+        for o in [*rows, report.total]:
+            name = "**all**" if o.name == "all" else o.name
+            lines.append(
+                f"| {name} | {n} | {o.n_instances} | {o.n_estimates} | "
+                f"{_percent(o.rate())} ({o.found['add_sym']}) | {_percent(o.rate('mssd'))} | "
+                f"{_percent(o.ar_mssd)} | {_percent(o.precision())} | {_percent(o.rate('adi'))} |"
+            )
+    return "\n".join(lines)
 
 
 def _percent(rate: float) -> str:
     return "-" if np.isnan(rate) else f"{100 * rate:.1f}%"
-
-
-def pose_error(model, T_est: np.ndarray, T_gt: np.ndarray, metric: str = "adds") -> float:
-    """ADD(-S) or MSSD of one estimate for an ObjectModel, metres."""
-    if metric == "adds":
-        fn = adi_error if model.is_symmetric else add_error
-        return fn(T_est, T_gt, model.points)
-    if metric == "mssd":
-        return mssd_error(T_est, T_gt, model.points, model.symmetry_transforms())
-    raise ValueError(f"metric must be 'adds' or 'mssd', got {metric!r}")
 
 
 def evaluate(
@@ -231,14 +349,15 @@ def evaluate(
     results: list[PoseResult],
     threshold: float = 0.1,
     min_visib: float = 0.75,
-    metric: str = "adds",
     targets: list[tuple[int, int]] | None = None,
+    metrics: tuple[str, ...] = METRICS,
 ) -> EvaluationReport:
-    """Detection rate per object of ``results`` on the annotated views of ``dataset``, or only
-    on the ``targets`` views ((scene_id, im_id) pairs)."""
-    if metric not in ("adds", "mssd"):
-        raise ValueError(f"metric must be 'adds' or 'mssd', got {metric!r}")
-    report = EvaluationReport(metric, threshold, min_visib)
+    """Detection rates, AR_MSSD and precision per object of ``results`` on the annotated views
+    of ``dataset``, or only on the ``targets`` views ((scene_id, im_id) pairs). ``metrics``
+    may leave out ``adi`` (the slowest) when it is not reported; its counts then stay 0."""
+    for m in metrics:
+        _check_metric(m)
+    report = EvaluationReport(threshold, min_visib)
     for obj_id, model in dataset.catalog.items():
         report.objects[obj_id] = ObjectScore(obj_id, model.name)
     by_view: dict[tuple[int, int, int], list[PoseResult]] = defaultdict(list)
@@ -251,21 +370,26 @@ def evaluate(
     for view in views:
         for obj_id, score in report.objects.items():
             gts = [g for g in view.gts if g.obj_id == obj_id]
-            score.n_instances += sum(g.visib_fract > min_visib for g in gts)
+            scored = np.array([g.visib_fract > min_visib for g in gts], dtype=bool)
+            score.n_instances += int(scored.sum())
+            # a stable sort: equal scores keep the results' order
             estimates = sorted(
                 by_view.get((view.scene_id, view.im_id, obj_id), []), key=lambda r: -r.score
             )
             score.n_estimates += len(estimates)
+            if not estimates or not gts:
+                continue
             model = dataset.catalog[obj_id]
-            limit = threshold * model.diameter
-            free = set(range(len(gts)))
-            for est in estimates:
-                best, best_error = None, limit
-                for k in free:
-                    error = pose_error(model, est.T_cam_obj, gts[k].T_cam_obj, metric)
-                    if error < best_error:
-                        best, best_error = k, error
-                if best is not None:
-                    free.discard(best)
-                    score.n_found += gts[best].visib_fract > min_visib
+            T_est = np.stack([r.T_cam_obj for r in estimates])
+            T_gt = np.stack([g.T_cam_obj for g in gts])
+            cutoff = max(threshold, *AR_THRESHOLDS) * model.diameter
+            for metric in metrics:
+                errors = error_matrix(model, T_est, T_gt, metric, cutoff)
+                matched = [g for _, g in match_estimates(errors, threshold * model.diameter)]
+                score.found[metric] += int(scored[matched].sum())
+                score.ignored[metric] += int((~scored[matched]).sum())
+                if metric == "mssd":
+                    for k, step in enumerate(AR_THRESHOLDS):
+                        hits = [g for _, g in match_estimates(errors, step * model.diameter)]
+                        score.found_ar[k] += int(scored[hits].sum())
     return report

@@ -5,9 +5,11 @@ In memory everything is in metres; the catalog on disk is in millimetres, as BOP
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,13 @@ import trimesh
 from scipy.spatial.distance import pdist
 
 from estimator.errors import CatalogError, MeshError
+from estimator.eval_points import (
+    derive_eval_points,
+    eval_points_path,
+    read_eval_points,
+    write_eval_points,
+)
+from estimator.pose_error import symmetry_transformations
 from estimator.symmetry import (
     ContinuousSymmetry,
     describe_symmetries,
@@ -36,9 +45,12 @@ class ObjectModel:
         name: human name, e.g. ``"gear"``.
         mesh: the surface in metres, in the object frame.
         diameter: largest distance between two mesh vertices, metres (BOP's definition).
-        points: (N, 3) seeded uniform surface samples in metres, used by ADD/ADI/MSSD.
+        points: (N, 3) seeded uniform surface samples in metres, used by the estimator (box
+            sizes, overlays, baselines); never by the pose errors.
         symmetries_discrete: (D, 4, 4) discrete symmetries without the identity, metres.
         symmetries_continuous: continuous symmetry axes (offset in metres).
+        stored_eval_points: (M, 3) the catalog's ``models_eval`` points, metres, when stored;
+            else :attr:`eval_points` derives them.
     """
 
     obj_id: int
@@ -48,11 +60,28 @@ class ObjectModel:
     points: np.ndarray  # (N, 3)
     symmetries_discrete: np.ndarray  # (D, 4, 4)
     symmetries_continuous: tuple[ContinuousSymmetry, ...] = ()
+    stored_eval_points: np.ndarray | None = None  # (M, 3)
 
     @property
     def is_symmetric(self) -> bool:
-        """True when the model has any symmetry: then ADD(-S) uses ADI, as in BOP."""
+        """True when the model has any symmetry."""
         return len(self.symmetries_discrete) > 0 or len(self.symmetries_continuous) > 0
+
+    @cached_property
+    def eval_points(self) -> np.ndarray:
+        """(M, 3) metres: the points every pose error is evaluated on (estimator.eval_points)."""
+        if self.stored_eval_points is not None:
+            return self.stored_eval_points
+        return derive_eval_points(self.mesh, self.diameter)
+
+    @cached_property
+    def eval_symmetries(self) -> np.ndarray:
+        """(S, 4, 4) the symmetry transformations of the pose errors, metres: bop_toolkit's
+        ``get_symmetry_transformations`` with ``max_sym_disc_step = 0.01``, identity first."""
+        return symmetry_transformations(
+            self.symmetries_discrete,
+            [(np.asarray(c.axis), np.asarray(c.offset)) for c in self.symmetries_continuous],
+        )
 
     def symmetry_transforms(self, max_step_rad: float = np.deg2rad(1.0)) -> np.ndarray:
         """(S, 4, 4) all symmetries with the identity first, continuous axes discretised."""
@@ -224,6 +253,7 @@ def write_catalog(models_dir: str | Path, models: Catalog | list[ObjectModel]) -
             trimesh.exchange.ply.export_ply(mesh_mm, encoding="binary", include_attributes=False)
         )
         info[str(model.obj_id)] = _info_entry(model)
+        write_eval_points(eval_points_path(models_dir, model.obj_id), model.eval_points)
     (models_dir / "models_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return models_dir
 
@@ -296,5 +326,12 @@ def load_catalog(models_dir: str | Path, detect_symmetries_if_missing: bool = Fa
             model = make_model(obj_id, name, mesh, disc, cont, detect=False)
         else:
             model = make_model(obj_id, name, mesh, detect=True)
+        eval_path = eval_points_path(models_dir, obj_id)
+        if eval_path.is_file():
+            try:
+                stored = read_eval_points(eval_path)
+            except Exception as exc:  # trimesh raises many types for corrupt files
+                raise CatalogError(eval_path, f"evaluation points: {exc}") from None
+            model = dataclasses.replace(model, stored_eval_points=stored)
         models.append(model)
     return Catalog(models, root=models_dir)

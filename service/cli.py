@@ -94,7 +94,6 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         results,
         threshold=args.threshold,
         min_visib=args.min_visib,
-        metric=args.metric,
         targets=targets,
     )
     print(report.to_markdown())
@@ -116,7 +115,7 @@ def _cmd_overlay(args: argparse.Namespace) -> int:
 
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
     from estimator.dataset import load_dataset
-    from estimator.evaluation import evaluate, write_results, write_targets
+    from estimator.evaluation import checkpoint_markdown, evaluate, write_results, write_targets
     from estimator.frontend.oracle import OracleConfig, OracleFrontend
     from estimator.run_dataset import CHECKPOINTS, run_dataset, summary_markdown, write_rows
     from estimator.tracker import MultiViewEstimator
@@ -173,8 +172,6 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     print(summary)
     print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
     if rotation:
-        lines = ["| object | " + " | ".join(f"{n} views" for n in CHECKPOINTS) + " |"]
-        lines.append("|---|" + "---|" * len(CHECKPOINTS))
         reports = {}
         for n in CHECKPOINTS:
             if not run.targets[n]:
@@ -182,31 +179,23 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
             write_results(out / f"results_{n}views.csv", run.results[n])
             write_targets(out / f"targets_{n}views.json", run.targets[n])
             reports[n] = evaluate(dataset, run.results[n], targets=run.targets[n])
-        for obj_id, model in dataset.catalog.items():
-            cells = []
-            for n in CHECKPOINTS:
-                o = reports[n].objects[obj_id] if n in reports else None
-                cells.append(
-                    "-"
-                    if o is None or not o.n_instances
-                    else f"{100 * o.rate:.1f}% ({o.n_found}/{o.n_instances})"
-                )
-            lines.append(f"| {model.name} | " + " | ".join(cells) + " |")
-        cells = [
-            f"{100 * reports[n].rate:.1f}% ({reports[n].n_found}/{reports[n].n_instances})"
-            if n in reports
-            else "-"
-            for n in CHECKPOINTS
-        ]
-        lines.append("| all | " + " | ".join(cells) + " |")
-        table = "\n".join(lines)
-        (out / "detection_rate.md").write_text(
-            "ADD(-S)-0.1d detection rate (visib_fract > 0.75) in the view after which the "
-            f"estimates were taken.\n\n{table}\n"
+        table = checkpoint_markdown(reports)
+        legend = (
+            "Pose accuracy (instances with visib_fract > 0.75) in the view after which the "
+            "estimates were taken: ADD-sym < 0.1 d (the headline; found instances in brackets), "
+            "MSSD < 0.1 d, AR_MSSD (mean recall over MSSD thresholds 0.05-0.5 d), precision "
+            "(found instances per estimate), and the lenient ADI < 0.1 d."
         )
-        print("\nADD(-S)-0.1d detection rate (visib_fract > 0.75):")
+        (out / "detection_rate.md").write_text(f"{legend}\n\n{table}\n")
+        (out / "detection_rate.json").write_text(
+            json.dumps({str(n): r.to_json() for n, r in reports.items()}, indent=1) + "\n"
+        )
+        print(f"\n{legend}")
         print(table)
-        print(f"wrote results_*views.csv, targets_*views.json and detection_rate.md to {out}")
+        print(
+            "wrote results_*views.csv, targets_*views.json, detection_rate.md and "
+            f"detection_rate.json to {out}"
+        )
     return 0
 
 
@@ -617,7 +606,7 @@ def _cmd_quickstart(args: argparse.Namespace) -> int:
     write_results(results_path, ground_truth_results(dataset))
     report = evaluate(dataset, read_results(results_path))
     print(
-        "3/3 ADD(-S)-0.1d of the ground-truth poses read back from "
+        "3/3 ADD-sym, MSSD and AR_MSSD of the ground-truth poses read back from "
         f"{results_path} (a check of the data path; the estimator is next):"
     )
     print(report.to_markdown())
@@ -653,13 +642,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("eval", help="score a BOP results CSV: ADD(-S) detection rate per object")
+    p = sub.add_parser(
+        "eval",
+        help="score a BOP results CSV: ADD-sym, MSSD, AR_MSSD and precision per object",
+    )
     p.add_argument("--dataset", required=True)
     p.add_argument("--results", required=True, help="CSV: scene_id,im_id,obj_id,score,R,t,time")
     p.add_argument("--split", default="test")
     p.add_argument("--threshold", type=float, default=0.1, help="fraction of the diameter")
     p.add_argument("--min-visib", type=float, default=0.75)
-    p.add_argument("--metric", default="adds", choices=["adds", "mssd"])
     p.add_argument("--targets", help="JSON list of {scene_id, im_id}: score only these views")
     p.add_argument("--json", help="also write the report as JSON here")
     p.set_defaults(func=_cmd_eval)

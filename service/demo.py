@@ -58,8 +58,10 @@ def make_recording(
 def score_segment(
     estimates: list[dict], truth: list[tuple[int, np.ndarray]], catalog, threshold: float = 0.1
 ) -> list[dict]:
-    """Each confirmed estimate with its ADD(-S) error to the closest unmatched true instance of
-    its class, greedy in order of confidence; ``correct`` when below threshold x diameter."""
+    """Each confirmed estimate with its ADD-sym and MSSD errors (metres) to the closest unmatched
+    true part of its class (by ADD-sym, greedy in order of confidence); ``correct`` when the
+    ADD-sym is below threshold x diameter, ``correct_mssd`` when the MSSD is. An estimate with no
+    rotation yet (one view) or no part of its class left gets errors of ``None``."""
     from scipy.spatial.transform import Rotation
 
     from estimator.evaluation import pose_error
@@ -75,11 +77,12 @@ def score_segment(
         T[:3, 3] = e["t"]
         best, best_err = None, np.inf
         for k in free:
-            if truth[k][0] != e["class_id"]:
+            if truth[k][0] != e["class_id"] or not e["hypotheses"]:
                 continue
-            err = pose_error(model, T, truth[k][1]) if e["hypotheses"] else np.inf
+            err = pose_error(model, T, truth[k][1], "add_sym")
             if err < best_err:
                 best, best_err = k, err
+        mssd = pose_error(model, T, truth[best][1], "mssd") if best is not None else None
         correct = best is not None and best_err < threshold * model.diameter
         if correct:
             free.discard(best)
@@ -89,11 +92,18 @@ def score_segment(
                 "class": model.name,
                 "n_views": e["n_views"],
                 "confidence": e["confidence"],
-                "error_mm": best_err * 1000,
+                "diameter_mm": model.diameter * 1000,
+                "add_sym_mm": None if best is None else best_err * 1000,
+                "mssd_mm": None if mssd is None else mssd * 1000,
                 "correct": bool(correct),
+                "correct_mssd": bool(mssd is not None and mssd < threshold * model.diameter),
             }
         )
     return rows
+
+
+def _mm(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
 
 
 def run_demo(
@@ -194,23 +204,35 @@ def run_demo(
         time.sleep(0.2)
         bar.close()
         segments.append((scene, [estimate_to_dict(e) for e in daemon.worker.snapshot()]))
-    total = correct = 0
+    rows_all, n_parts = [], 0
     for scene_id, estimates in segments:
         rows = score_segment(estimates, truth.get(scene_id, []), catalog)
+        n_parts += len(truth.get(scene_id, []))
         print(
             f"\nscene {scene_id}: {len(truth.get(scene_id, []))} parts in the bin, "
             f"{len(rows)} confirmed estimates"
         )
-        print(f"{'object_id':<18} {'class':<13} {'views':>5} {'conf':>5} {'ADD(-S) mm':>10}  ok")
+        print(
+            f"{'object_id':<18} {'class':<13} {'views':>5} {'conf':>5} {'d mm':>6} "
+            f"{'ADD-sym mm':>10} {'MSSD mm':>8}  ok"
+        )
         for r in rows:
             print(
                 f"{r['object_id']:<18} {r['class']:<13} {r['n_views']:>5} "
-                f"{r['confidence']:>5.2f} {r['error_mm']:>10.1f}  {'yes' if r['correct'] else 'no'}"
+                f"{r['confidence']:>5.2f} {r['diameter_mm']:>6.1f} {_mm(r['add_sym_mm']):>10} "
+                f"{_mm(r['mssd_mm']):>8}  {'yes' if r['correct'] else 'no'}"
             )
-            total += 1
-            correct += r["correct"]
+        rows_all += rows
+    correct = sum(r["correct"] for r in rows_all)
+    correct_mssd = sum(r["correct_mssd"] for r in rows_all)
     print(
-        f"\n{correct} of {total} estimates within ADD(-S) 0.1d of a true part; "
+        "\nd: the part's diameter. ADD-sym: mean distance of the model points to the closest "
+        "symmetric equivalent of the true pose; MSSD: the same with the largest distance; "
+        "ok: ADD-sym < 0.1 d. '-': no rotation yet (seen once) or no true part of the class left."
+    )
+    print(
+        f"{correct} of {len(rows_all)} confirmed estimates within ADD-sym 0.1 d of a true part "
+        f"({correct_mssd} within MSSD 0.1 d); {n_parts} parts were in the bins; "
         f"stats: {daemon.stats_dict()['frames_processed']} frames processed"
     )
     url = f"http://{settings.http_host}:{settings.http_port}"
