@@ -53,8 +53,11 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
                 e["n_views"],
                 len(e["hypotheses"]),
             )
-            np.testing.assert_allclose(g["t"], e["t"], atol=1e-9)
-            np.testing.assert_allclose(g["q"], e["q"], atol=1e-9)
+            # the expected file was written on another machine, whose floating point (BLAS, CPU
+            # features) may differ in the last bits: compare at a physical tolerance, 1 um and
+            # about 2 urad; byte-identity is checked above between replays on this machine
+            np.testing.assert_allclose(g["t"], e["t"], atol=1e-6)
+            np.testing.assert_allclose(g["q"], e["q"], atol=1e-6)
 
 
 @pytest.mark.parametrize("cut", [0.3, 0.7])
@@ -89,7 +92,7 @@ def test_live_lockstep_replay_over_zenoh_equals_offline(default_banks, capsys):
     )
     segments = run_demo(DEFAULT_RECORDING, settings, show_progress=False)
     out = capsys.readouterr().out
-    assert "estimates within ADD(-S) 0.1d of a true part" in out
+    assert "confirmed estimates within ADD-sym 0.1 d of a true part" in out
     expected = json.loads(EXPECTED.read_text())["segments"]
     assert len(segments) == len(expected)
     for (_, live), offline in zip(segments, expected, strict=True):
