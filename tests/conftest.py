@@ -23,14 +23,22 @@ def robi_catalog():
     return load_catalog(DEFAULT_CATALOG)
 
 
+def render_small_dataset(root, catalog, n_scenes: int, seed: int, instances, n_views: int):
+    """Bins of the catalog at 640x360 as a BOP dataset under root."""
+    config = SynthConfig(
+        n_scenes=n_scenes,
+        seed=seed,
+        camera=SMALL_CAMERA,
+        scene=SceneSpec(n_instances=instances, n_views=n_views),
+    )
+    return generate_dataset(catalog, root, config, show_progress=False)
+
+
 @pytest.fixture(scope="session")
 def small_dataset_root(tmp_path_factory, robi_catalog):
     """2 scenes x 3 views at 640x360 (a few seconds to render)."""
     root = tmp_path_factory.mktemp("bop") / "small"
-    config = SynthConfig(
-        n_scenes=2, seed=11, camera=SMALL_CAMERA, scene=SceneSpec(n_instances=(6, 8), n_views=3)
-    )
-    return generate_dataset(robi_catalog, root, config, show_progress=False)
+    return render_small_dataset(root, robi_catalog, 2, 11, (6, 8), 3)
 
 
 @pytest.fixture(scope="session")

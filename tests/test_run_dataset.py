@@ -77,15 +77,10 @@ def test_both_steps_end_to_end_and_deterministic(small_dataset_root, default_ban
 @pytest.fixture(scope="module")
 def four_view_dataset(tmp_path_factory, robi_catalog):
     """3 bins x 4 views at 640x360 with 8-12 parts each."""
-    from sim.scenes import SceneSpec
-    from sim.synth import SynthConfig, generate_dataset
-    from tests.conftest import SMALL_CAMERA
+    from tests.conftest import render_small_dataset
 
     root = tmp_path_factory.mktemp("bop4") / "four"
-    config = SynthConfig(
-        n_scenes=3, seed=12, camera=SMALL_CAMERA, scene=SceneSpec(n_instances=(8, 12), n_views=4)
-    )
-    return generate_dataset(robi_catalog, root, config, show_progress=False)
+    return render_small_dataset(root, robi_catalog, 3, 12, (8, 12), 4)
 
 
 def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
