@@ -222,6 +222,16 @@ class BopDataset:
         )
         self._scenes: dict[int, BopScene] = {}
 
+    @property
+    def profile(self) -> str:
+        """The scene profile ``posefuse synth`` rendered it with (``synth.json``), else
+        ``"unknown"`` (a dataset made elsewhere)."""
+        path = self.root / "synth.json"
+        try:
+            return str(json.loads(path.read_text()).get("profile", "unknown"))
+        except (OSError, ValueError, AttributeError):
+            return "unknown"
+
     def scene(self, scene_id: int) -> BopScene:
         if scene_id not in self.scene_ids:
             raise DatasetError(self.split_dir, f"no scene {scene_id}; scenes are {self.scene_ids}")

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.evaluation import PoseResult
+from estimator.fates import InstanceFate, TrackPose, instance_fates
 from estimator.frontend.oracle import OracleFrontend
 from estimator.metrics import AssociationScore, association_score, nees, track_identities
 from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
@@ -61,12 +62,14 @@ class TranslationRow:
 @dataclass(frozen=True)
 class DatasetRun:
     """rows: translation errors; association: its score; results: per checkpoint, the pose
-    estimates expressed in the checkpoint's view (BOP results), and targets: the views scored."""
+    estimates expressed in the checkpoint's view (BOP results), and targets: the views scored;
+    fates: where each scored instance ended at each checkpoint (with the rotation step)."""
 
     rows: tuple[TranslationRow, ...]
     association: AssociationScore
     results: dict[int, list[PoseResult]]
     targets: dict[int, list[tuple[int, int]]]
+    fates: tuple[InstanceFate, ...] = ()
 
 
 def run_dataset(
@@ -83,6 +86,7 @@ def run_dataset(
     too (the front end must give masks); ``estimator_factory`` makes each scene's estimator
     (default: ``MultiViewEstimator(dataset.catalog, config)``)."""
     rows: list[TranslationRow] = []
+    fates: list[InstanceFate] = []
     results: dict[int, list[PoseResult]] = {n: [] for n in checkpoints}
     targets: dict[int, list[tuple[int, int]]] = {n: [] for n in checkpoints}
     members_all: dict[str, list[int]] = {}
@@ -113,12 +117,17 @@ def run_dataset(
             if count not in checkpoints:
                 continue
             targets[count].append((scene_id, im_id))
-            for e in estimator.estimates(include_tentative=count == 1):
-                if e.hypotheses:
-                    T_cam_obj = view.T_cam_world @ e.T_world_obj
+            poses = []
+            for e in estimator.estimates(include_tentative=True):
+                reported = bool(e.hypotheses) and (count == 1 or e.status == CONFIRMED)
+                T_cam_obj = view.T_cam_world @ e.T_world_obj if reported else None
+                poses.append(TrackPose(e.object_id, e.class_id, e.confidence, T_cam_obj))
+                if reported:
                     results[count].append(
                         PoseResult(scene_id, im_id, e.class_id, e.confidence, T_cam_obj)
                     )
+            if rotation:
+                fates += instance_fates(view, dataset.catalog, count, poses, dict(members))
             identity = track_identities(members)
             cam_centre = view.T_world_cam[:3, 3]
             for oid, track in sorted(estimator.tracks.items()):
@@ -148,7 +157,18 @@ def run_dataset(
         }
     bar.close()
     score = association_score(members_all, confirmed_all, n_true)
-    return DatasetRun(tuple(rows), score, results, targets)
+    return DatasetRun(tuple(rows), score, results, targets, tuple(fates))
+
+
+def write_fates(path: str | Path, fates: tuple[InstanceFate, ...]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(["scene_id", "im_id", "n_views", "obj_id", "gt_idx", "fate"])
+        for x in fates:
+            w.writerow([x.scene_id, x.im_id, x.n_views, x.obj_id, x.gt_idx, x.fate])
+    return path
 
 
 def write_rows(path: str | Path, rows: tuple[TranslationRow, ...]) -> Path:

@@ -49,8 +49,10 @@ def _catalog_table(catalog) -> str:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from estimator.objects import load_catalog
-    from sim.scenes import INTRINSICS, SceneSpec
+    from sim.scenes import INTRINSICS, PROFILES
     from sim.synth import SynthConfig, generate_dataset
 
     if args.intrinsics not in INTRINSICS:
@@ -59,7 +61,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         )
     if args.scenes < 1 or args.views < 1:
         raise PosefuseError("--scenes and --views must be at least 1")
-    lo, hi = args.instances
+    profile = PROFILES[args.profile]
+    lo, hi = args.instances or profile.n_instances
     if not 1 <= lo <= hi:
         raise PosefuseError("--instances needs MIN MAX with 1 <= MIN <= MAX")
     catalog = load_catalog(args.catalog)
@@ -72,7 +75,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         split=args.split,
         first_scene_id=args.first_scene,
         camera=INTRINSICS[args.intrinsics],
-        scene=SceneSpec(n_instances=(lo, hi), n_views=args.views),
+        scene=dataclasses.replace(profile, n_instances=(lo, hi), n_views=args.views),
+        profile=args.profile,
         obj_ids=obj_ids,
     )
     start = time.perf_counter()
@@ -192,9 +196,23 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
         )
         print(f"\n{legend}")
         print(table)
+        from estimator.fates import fate_table
+        from estimator.run_dataset import write_fates
+
+        write_fates(out / "fates.csv", run.fates)
+        fates = fate_table(
+            [f for f in run.fates if f.n_views >= 2], dataset.catalog, dataset.profile
+        )
+        fates_legend = (
+            "Where each scored instance ended (estimator/fates.py gives the rules, first that "
+            f"applies); profile {dataset.profile}, front end {args.frontend}."
+        )
+        (out / "fates.md").write_text(f"{fates_legend}\n\n{fates}\n")
+        print(f"\n{fates_legend}")
+        print(fates)
         print(
-            "wrote results_*views.csv, targets_*views.json, detection_rate.md and "
-            f"detection_rate.json to {out}"
+            "wrote results_*views.csv, targets_*views.json, detection_rate.md, "
+            f"detection_rate.json, fates.csv and fates.md to {out}"
         )
     return 0
 
@@ -636,7 +654,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--split", default="test")
     p.add_argument("--first-scene", type=int, default=0)
-    p.add_argument("--instances", type=int, nargs=2, default=(5, 15), metavar=("MIN", "MAX"))
+    p.add_argument(
+        "--profile",
+        default="mixed",
+        choices=["mixed", "robi"],
+        help="mixed: 5-15 parts of 1-3 types, cameras around the bin; robi: 20-40 parts of one "
+        "type piled densely, an eye-in-hand sweep over the bin (default mixed)",
+    )
+    p.add_argument(
+        "--instances",
+        type=int,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        help="parts per bin (default: the profile's, 5 15 for mixed, 20 40 for robi)",
+    )
     p.add_argument("--intrinsics", default="realsense", help="realsense, realsense-640 or ensenso")
     p.add_argument("--obj-ids", type=int, nargs="+", help="only these objects of the catalog")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -48,6 +48,34 @@ class SceneSpec:
     tilt_deg: float = 12.0  # random tilt added to a stable pose
     drop_candidates: int = 6  # placements tried per part; the lowest resting one is kept
     bin: BinSpec = field(default_factory=BinSpec)
+    view_pattern: str = "around"  # "around" the bin, or an eye-in-hand "sweep" over it
+    drop_region: float = 1.0  # parts are dropped over this fraction of the floor's sides
+
+    def __post_init__(self):
+        if self.view_pattern not in VIEW_PATTERNS:
+            raise ValueError(
+                f"view_pattern must be one of {', '.join(VIEW_PATTERNS)}, got {self.view_pattern!r}"
+            )
+
+
+VIEW_PATTERNS = ("around", "sweep")
+
+# Scene profiles of `posefuse synth --profile`:
+# - mixed: 5-15 parts of 1-3 types, cameras spread around the bin (our bins until now);
+# - robi: one part type per bin, 20-40 of them tumbled and dropped over the middle of the bin so
+#   that they pile up and hide each other as in ROBI, 8 views of an eye-in-hand sweep across the
+#   bin at the same distances.
+PROFILES = {
+    "mixed": SceneSpec(),
+    "robi": SceneSpec(
+        n_instances=(20, 40),
+        parts_per_scene=(1, 1),
+        view_pattern="sweep",
+        tilt_deg=70.0,  # tumbled, not resting flat
+        drop_candidates=1,  # each part lands where it falls, on the pile
+        drop_region=0.7,  # over the middle of the bin, so the parts pile up
+    ),
+}
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,7 +234,8 @@ def place_instances(
             posed = model.mesh.copy()
             posed.apply_transform(_pose(R, np.zeros(3)))
             lo, hi = posed.bounds
-            room = np.maximum(np.array([sx, sy]) / 2 - (hi - lo)[:2] / 2 - 0.003, 0.0)
+            half = np.array([sx, sy]) / 2 * spec.drop_region
+            room = np.maximum(half - (hi - lo)[:2] / 2 - 0.003, 0.0)
             centre_xy = rng.uniform(-room, room)
             start_z = pile.bounds[1, 2] + 0.02 - lo[2]
             shift = np.array([*(centre_xy - (lo[:2] + hi[:2]) / 2), start_z])
@@ -249,7 +278,10 @@ def look_at(eye: np.ndarray, target: np.ndarray, up_hint: np.ndarray) -> np.ndar
 
 
 def sample_views(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
-    """(V, 4, 4) T_world_cam on a hemisphere above the bin, looking into it."""
+    """(V, 4, 4) T_world_cam on a hemisphere above the bin, looking into it: spread around it,
+    or (``spec.view_pattern == "sweep"``) along one pass of a hand-held camera across it."""
+    if spec.view_pattern == "sweep":
+        return _sweep_views(spec, rng)
     views = []
     base_az = rng.uniform(0, 2 * np.pi)
     for k in range(spec.n_views):
@@ -265,6 +297,29 @@ def sample_views(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
             [np.cos(az + np.pi + rng.normal(0, 0.3)), np.sin(az + np.pi + rng.normal(0, 0.3)), 0.0]
         )
         views.append(look_at(eye, target, -roll_hint))
+    return np.stack(views)
+
+
+def _sweep_views(spec: SceneSpec, rng: np.random.Generator) -> np.ndarray:
+    """An eye-in-hand sweep: the camera passes over the bin along one direction, from one side's
+    largest polar angle through the vertical to the other's, at a distance that drifts a little,
+    always looking at the middle of the bin."""
+    views = []
+    direction = rng.uniform(0, 2 * np.pi)
+    radius = rng.uniform(*spec.distance)
+    lo, hi = spec.distance
+    for k in range(spec.n_views):
+        s = -1.0 + 2.0 * k / max(spec.n_views - 1, 1)
+        polar = np.deg2rad(s * spec.max_polar_deg + rng.normal(0, 2.0))
+        az = direction + rng.normal(0, 0.15)
+        r = float(np.clip(radius + rng.normal(0, 0.02), lo, hi))
+        target = np.array([*rng.uniform(-0.02, 0.02, 2), 0.02])
+        eye = target + r * np.array(
+            [np.sin(polar) * np.cos(az), np.sin(polar) * np.sin(az), np.cos(polar)]
+        )
+        # the image's up stays along the sweep, as a wrist camera keeps its orientation
+        up = np.array([np.cos(direction + np.pi / 2), np.sin(direction + np.pi / 2), 0.0])
+        views.append(look_at(eye, target, up))
     return np.stack(views)
 
 

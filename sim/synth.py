@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ class SynthConfig:
     scene: SceneSpec = SceneSpec()
     sensor: SensorModel = SensorModel()
     obj_ids: tuple[int, ...] | None = None
+    profile: str = "mixed"  # the name of ``scene``'s profile, recorded in synth.json
 
 
 def scene_seed(seed: int, scene_id: int) -> int:
@@ -81,6 +83,24 @@ def generate_dataset(
     """Write ``config.n_scenes`` scenes of ``config.scene.n_views`` views to ``out`` (BOP)."""
     out = Path(out)
     write_dataset_header(out, config.camera, catalog)
+    spec = config.scene
+    (out / "synth.json").write_text(
+        json.dumps(
+            {
+                "profile": config.profile,
+                "seed": config.seed,
+                "first_scene_id": config.first_scene_id,
+                "n_scenes": config.n_scenes,
+                "n_views": spec.n_views,
+                "instances": list(spec.n_instances),
+                "parts_per_scene": list(spec.parts_per_scene),
+                "view_pattern": spec.view_pattern,
+                "obj_ids": list(config.obj_ids) if config.obj_ids else None,
+            },
+            indent=1,
+        )
+        + "\n"
+    )
     total = config.n_scenes * config.scene.n_views
     with tqdm(total=total, desc="synth", unit="view", disable=not show_progress) as bar:
         for k in range(config.n_scenes):

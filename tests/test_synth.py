@@ -140,3 +140,32 @@ def test_bop_files_are_consistent(tmp_path, catalog):
 
     for k in range(6):
         np.testing.assert_allclose(world_pose("0", k), world_pose("1", k), atol=1e-6)
+
+
+def test_robi_profile_piles_one_part_type_and_sweeps_over_the_bin(robi_catalog, tmp_path):
+    import dataclasses
+
+    from estimator.dataset import load_dataset
+    from service.cli import main
+    from sim.scenes import PROFILES
+
+    spec = PROFILES["robi"]
+    assert spec.parts_per_scene == (1, 1) and spec.n_instances == (20, 40)
+    out = tmp_path / "robi"
+    args = ["synth", "--profile", "robi", "--out", str(out), "--scenes", "1", "--views", "4"]
+    assert main([*args, "--intrinsics", "realsense-640", "--seed", "5", "--quiet"]) == 0
+    ds = load_dataset(out)
+    assert ds.profile == "robi"
+    views = list(ds.views())
+    assert len({g.obj_id for v in views for g in v.gts}) == 1
+    assert 20 <= len(views[0].gts) <= 40
+    # piled: in every view some parts hide others
+    assert all(min(g.visib_fract for g in v.gts) < 0.5 for v in views)
+    # a sweep: the camera centres lie near one vertical plane, ordered along it
+    centres = np.array([v.T_world_cam[:3, 3] for v in views])
+    _, sv, vt = np.linalg.svd(centres[:, :2] - centres[:, :2].mean(axis=0))
+    along = (centres[:, :2] - centres[:, :2].mean(axis=0)) @ vt[0]
+    assert sv[1] < 0.35 * sv[0]
+    assert np.all(np.diff(along) > 0) or np.all(np.diff(along) < 0)
+    with pytest.raises(ValueError, match="view_pattern"):
+        dataclasses.replace(spec, view_pattern="spiral")

@@ -1,0 +1,92 @@
+"""One fate per scored instance: each rule of estimator/fates.py on a constructed view."""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from estimator.fates import FATES, TrackPose, fate_table, instance_fates
+
+SCREW = 2  # continuous symmetry about z
+
+
+@dataclass
+class _Gt:
+    obj_id: int
+    T_cam_obj: np.ndarray
+    visib_fract: float = 1.0
+
+
+@dataclass
+class _View:
+    gts: list
+    scene_id: int = 0
+    im_id: int = 3
+
+
+def _T(rotvec=(0, 0, 0), t=(0, 0, 0.7)):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_every_fate_in_order(robi_catalog):
+    d = robi_catalog[SCREW].diameter
+    gts = [_Gt(SCREW, _T(t=(0.2 * k - 0.8, 0, 0.7))) for k in range(9)]
+    gts.append(_Gt(SCREW, _T(t=(1.0, 0, 0.7)), visib_fract=0.5))  # not scored
+    truth = [g.T_cam_obj for g in gts]
+
+    def moved(k, rotvec=(0, 0, 0), dt=(0, 0, 0)):
+        T = truth[k] @ _T(rotvec, (0, 0, 0))
+        T[:3, 3] += dt
+        return T
+
+    tracks = [
+        # 0: right, up to its continuous symmetry (a turn about its own axis)
+        TrackPose("a", SCREW, 0.9, moved(0, rotvec=(0, 0, 2.0))),
+        # 1: seen once only (no track)
+        # 2: split over two tracks
+        TrackPose("b1", SCREW, 0.5, None),
+        TrackPose("b2", SCREW, 0.5, None),
+        # 3 and 4: one track holds both
+        TrackPose("c", SCREW, 0.8, moved(3, dt=(0.1, 0, 0))),
+        # 5: a track without a pose yet
+        TrackPose("e", SCREW, 0.4, None),
+        # 6: translation off by 0.3 d along the view
+        TrackPose("f", SCREW, 0.7, moved(6, dt=(0, 0, 0.3 * d))),
+        # 7: end over end
+        TrackPose("g", SCREW, 0.7, moved(7, rotvec=(np.pi, 0, 0))),
+        # 8: tilted by 40 degrees
+        TrackPose("h", SCREW, 0.7, moved(8, rotvec=(np.deg2rad(40), 0, 0))),
+    ]
+    members = {
+        "a": [0, 0, 0],
+        "x": [1],
+        "b1": [2, 2],
+        "b2": [2],
+        "c": [3, 3, 4, 4],
+        "e": [5, 5],
+        "f": [6, 6, 6],
+        "g": [7, 7, 7],
+        "h": [8, 8, -1],
+    }
+    fates = instance_fates(_View(gts), robi_catalog, 4, tracks, members)
+    got = {f.gt_idx: f.fate for f in fates}
+    assert 9 not in got  # barely visible: not scored
+    assert got == {
+        0: "correct",
+        1: "not detected",
+        2: "split",
+        3: "merged",
+        4: "merged",
+        5: "no pose",
+        6: "translation off",
+        7: "rotation flipped",
+        8: "rotation off",
+    }
+    table = fate_table(fates, robi_catalog, "robi")
+    all_row = next(line for line in table.splitlines() if "**all**" in line)
+    cells = [c.strip() for c in all_row.strip("|").split("|")]
+    assert cells[:4] == ["robi", "**all**", "4", "9"]
+    assert sum(int(c) for c in cells[4:]) == 9 and len(cells[4:]) == len(FATES)
