@@ -258,6 +258,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         batch=args.batch,
         seed=args.seed,
         workers=args.workers,
+        robi_fraction=args.robi_fraction,
     )
     card = train(args.catalog, args.out, config)
     print(json.dumps(card, indent=2))
@@ -735,6 +736,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--workers", type=int, default=2, help="rendering processes")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--robi-fraction",
+        type=float,
+        default=0.5,
+        help="share of training scenes in the robi profile, the rest mixed (default 0.5)",
+    )
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("eval-frontend", help="recall, precision and center accuracy of a model")

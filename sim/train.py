@@ -2,20 +2,23 @@
 
 ``posefuse train --catalog DIR --out models/NAME.onnx`` renders bin scenes of the catalog with
 :mod:`sim` (scene seeds from ``TRAIN_SEED_BASE`` on, disjoint from the test sets' seeds; random
-lighting, bin textures, piles with occlusion, sensor noise) at half the 1280x720 resolution, the
-network's input scale; trains :class:`sim.net.CenterVotingNet` on random crops with
-brightness, contrast and noise augmentation; calibrates the voting covariance on held-out
-renders; exports ONNX (opset 17) and writes the model card beside it.
+lighting, bin textures, piles with occlusion, sensor noise; half of the scenes in the robi
+profile) at 1280x720 and resizes them to the network's input scale as the front end does;
+trains :class:`sim.net.CenterVotingNet` on random crops with brightness, contrast and noise
+augmentation; calibrates the voting covariance on held-out renders made the same way; exports
+ONNX (opset 17) and writes the model card beside it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -24,7 +27,7 @@ from estimator.frontend.network import MEAN, STD, ModelCard, catalog_hash, outpu
 from estimator.frontend.voting import VotingConfig, vote_instances
 from estimator.objects import Catalog, load_catalog
 from estimator.render import CHROME, METAL, Renderer
-from sim.scenes import REALSENSE_1280x720, SceneSpec, make_scene
+from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
 from sim.sensor import SensorModel, apply_rgb
 from sim.synth import BIN_ID, scene_seed
 
@@ -46,33 +49,51 @@ class TrainConfig:
     width: int = 16
     seed: int = 0
     workers: int = 2
+    robi_fraction: float = 0.5  # of the scenes rendered with the robi profile, the rest mixed
 
 
 def _class_index(catalog: Catalog) -> dict[int, int]:
     return {obj_id: k + 1 for k, obj_id in enumerate(sorted(catalog))}
 
 
+def profile_of(scene_index: int, robi_fraction: float) -> str:
+    """Which profile a training scene uses: ``robi_fraction`` of them, interleaved, are robi."""
+    robi = int((scene_index + 1) * robi_fraction) > int(scene_index * robi_fraction)
+    return "robi" if robi else "mixed"
+
+
 def render_views(args: tuple) -> list[tuple]:
     """One scene's views as (image (Hp, W, 3) uint8, labels (h, w) uint8, vectors (2, h, w)
     float16, centers (K, 3) class and output-grid x, y), at the network's input scale; the
-    picklable unit of parallel rendering."""
-    catalog_dir, scene_index, views, seed_base = args
+    picklable unit of parallel rendering.
+
+    Views are made exactly as test images and the service's frames are: rendered at 1280x720
+    with the sensor model applied there, then resized by ``INPUT_SCALE`` with the same
+    ``cv2.resize`` as the front end's pre-processing (the instance map by nearest neighbour).
+    """
+    catalog_dir, scene_index, views, seed_base, profile = args
     catalog = load_catalog(catalog_dir)
     classes = _class_index(catalog)
     seed = scene_seed(seed_base, scene_index)
-    camera = REALSENSE_1280x720.scaled(INPUT_SCALE)
-    scene = make_scene(catalog, SceneSpec(n_views=views), seed, camera)
+    full = REALSENSE_1280x720
+    camera = full.scaled(INPUT_SCALE)
+    spec = dataclasses.replace(PROFILES[profile], n_views=views)
+    scene = make_scene(catalog, spec, seed, full)
     materials = [CHROME if "screw" in catalog[i.obj_id].name else METAL for i in scene.instances]
     meshes = [catalog[i.obj_id].mesh for i in scene.instances] + [scene.bin_mesh]
     poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
     ids = list(range(len(scene.instances))) + [BIN_ID]
     renderer = Renderer(meshes, poses, ids, materials + [scene.bin_material])
     rng = np.random.default_rng(seed + 1)
+    size = (camera.width, camera.height)
     out = []
     for T_world_cam in scene.T_world_cams:
-        res = renderer.render(camera, T_world_cam, scene.lighting)
-        image = apply_rgb(res.image, SensorModel(), rng)
-        out.append(make_targets(image, res.instance, scene, T_world_cam, camera, classes))
+        res = renderer.render(full, T_world_cam, scene.lighting)
+        image = cv2.resize(
+            apply_rgb(res.image, SensorModel(), rng), size, interpolation=cv2.INTER_AREA
+        )
+        instance = cv2.resize(res.instance.astype(np.int32), size, interpolation=cv2.INTER_NEAREST)
+        out.append(make_targets(image, instance, scene, T_world_cam, camera, classes))
     return out
 
 
@@ -107,8 +128,11 @@ def make_targets(image, instance, scene, T_world_cam, camera: Camera, classes):
     return img, labels, vectors, np.array(centers).reshape(-1, 3)
 
 
-def render_dataset(catalog_dir, n_scenes, views, seed_base, workers, desc):
-    jobs = [(str(catalog_dir), k, views, seed_base) for k in range(n_scenes)]
+def render_dataset(catalog_dir, n_scenes, views, seed_base, workers, desc, robi_fraction=0.0):
+    jobs = [
+        (str(catalog_dir), k, views, seed_base, profile_of(k, robi_fraction))
+        for k in range(n_scenes)
+    ]
     items = []
     with tqdm(total=n_scenes, desc=desc, unit="scene") as bar:
         if workers > 1:
@@ -153,6 +177,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         TRAIN_SEED_BASE,
         config.workers,
         "render train",
+        config.robi_fraction,
     )
     val = render_dataset(
         catalog_dir,
@@ -161,6 +186,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         TRAIN_SEED_BASE + 1,
         config.workers,
         "render val",
+        config.robi_fraction,
     )
     render_minutes = (time.time() - start) / 60
     model = CenterVotingNet(n_classes, config.width)
@@ -254,9 +280,12 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "architecture": f"CenterVotingNet(width={config.width}), "
             f"{sum(p.numel() for p in model.parameters())} parameters",
             "training": {
-                "data": f"{config.n_scenes} scenes x {config.views_per_scene} views rendered "
-                f"at {int(1280 * INPUT_SCALE)}x{int(720 * INPUT_SCALE)}, scene seeds "
-                f"scene_seed({TRAIN_SEED_BASE}, 0..{config.n_scenes - 1})",
+                "data": f"{config.n_scenes} scenes x {config.views_per_scene} views "
+                f"({config.robi_fraction:.0%} robi profile, the rest mixed), rendered at "
+                f"1280x720 and resized to {int(1280 * INPUT_SCALE)}x{int(720 * INPUT_SCALE)} "
+                f"as the front end does, scene seeds scene_seed({TRAIN_SEED_BASE}, "
+                f"0..{config.n_scenes - 1}); validation scene_seed({TRAIN_SEED_BASE + 1}, "
+                f"0..{config.val_scenes - 1})",
                 "iterations": it,
                 "batch": config.batch,
                 "crop": list(config.crop),
