@@ -73,7 +73,8 @@ class OracleFrontend:
             out.append((Detection(gt.obj_id, bbox, uv + noise, cov, mask, 1.0), gt.gt_idx))
         n_false = rng.binomial(len(out), cfg.false_positive_rate) if out else 0
         for _ in range(n_false):
-            wh = sizes[rng.integers(len(sizes))]
+            # the size of a random true detection, at most half the image, so the box fits
+            wh = np.minimum(sizes[rng.integers(len(sizes))], [camera.width / 2, camera.height / 2])
             uv = rng.uniform([wh[0], wh[1]], [camera.width - wh[0], camera.height - wh[1]])
             bbox = np.array([uv[0] - wh[0] / 2, uv[1] - wh[1] / 2, wh[0], wh[1]])
             mask = None
