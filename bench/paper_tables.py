@@ -75,11 +75,14 @@ class MethodRun:
     seconds: float = 0.0
 
 
-def ensure_dataset(root: Path, quick: bool, catalog_dir: str):
-    """The BOP dataset at root, rendered first when root holds none."""
+def ensure_dataset(root: Path, quick: bool, catalog_dir: str, profile: str = "mixed"):
+    """The BOP dataset at root, rendered first (in the scene ``profile``) when root holds
+    none."""
+    import dataclasses
+
     from estimator.dataset import load_dataset
     from estimator.objects import load_catalog
-    from sim.scenes import REALSENSE_1280x720, SceneSpec
+    from sim.scenes import PROFILES, REALSENSE_1280x720
     from sim.synth import SynthConfig, generate_dataset
 
     if not (root / "test").is_dir():
@@ -88,7 +91,8 @@ def ensure_dataset(root: Path, quick: bool, catalog_dir: str):
             n_scenes=spec["scenes"],
             seed=spec["seed"],
             camera=REALSENSE_1280x720.resized(spec["width"], spec["height"]),
-            scene=SceneSpec(n_views=spec["views"]),
+            scene=dataclasses.replace(PROFILES[profile], n_views=spec["views"]),
+            profile=profile,
         )
         generate_dataset(load_catalog(catalog_dir), root, config)
     return load_dataset(root)
@@ -336,7 +340,8 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
         "# Benchmarks: the paper's Tables I and II on synthetic bin scenes",
         "",
         f"Made by `{meta['command']}` in {meta['minutes']:.1f} min on {meta['machine']}.",
-        f"Dataset `{meta['dataset']}`: {meta['scenes']} scenes x {meta['views']} views "
+        f"Dataset `{meta['dataset']}` (profile {meta.get('profile', 'unknown')}): "
+        f"{meta['scenes']} scenes x {meta['views']} views "
         f"({meta['resolution']}), rendered by this command with seed {meta['dataset_seed']} "
         "when absent. Detections: the oracle front end (true centers + 2 px Gaussian noise, "
         "visible masks, seed 0), the same for every method. Every number on this page comes "
@@ -486,7 +491,7 @@ def main(args) -> int:
 
     start = time.perf_counter()
     root = Path(args.dataset)
-    dataset = ensure_dataset(root, args.quick, args.catalog)
+    dataset = ensure_dataset(root, args.quick, args.catalog, args.profile)
     banks = {k: build_template_bank(m, show_progress=True) for k, m in dataset.catalog.items()}
     runs = run_all(dataset, banks, progress=True)
     scores = score_runs(dataset, runs)
@@ -502,6 +507,7 @@ def main(args) -> int:
         "views": len(first.im_ids),
         "resolution": f"{camera.width}x{camera.height}",
         "dataset_seed": spec["seed"],
+        "profile": dataset.profile,
     }
     text = markdown(dataset, scores, meta)
     out = Path(args.out)

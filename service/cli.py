@@ -280,6 +280,7 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
         return frontend.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
 
     score = score_frontend(dataset, detect, views, min_visib=args.min_visib)
+    print(f"Front end {args.model} on {args.dataset} (profile {dataset.profile}):\n")
     print(score.to_markdown())
     return 0
 
@@ -830,6 +831,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="2 small scenes (CI)")
     p.add_argument("--catalog", default=DEFAULT_CATALOG)
     p.add_argument("--out", default=DEFAULT_BENCHMARKS, help="the Markdown page (and .json)")
+    p.add_argument(
+        "--profile",
+        default="mixed",
+        choices=["mixed", "robi"],
+        help="scene profile of a dataset rendered by this command (default mixed)",
+    )
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("demo", help="replay the demo recording through the daemon and score it")
