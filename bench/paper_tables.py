@@ -352,8 +352,9 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
         "paper's metric, against the symmetric equivalent of the truth closest to the estimate), "
         "MSSD < 0.1 d, AR_MSSD (BOP's mean recall over MSSD thresholds 0.05-0.5 d), precision "
         "(found instances per estimate; estimates of barely visible parts left out) and ADI "
-        "< 0.1 d, which is lenient (a random rotation with the true center passes it for 18-50% "
-        "of our parts) and shown only to compare with earlier pages. Errors equal "
+        "< 0.1 d, which is lenient (a random rotation with the true center passes it for 15-64% "
+        "of the instances, depending on the part, on the 12 scenes of docs/performance.md) "
+        "and shown only to compare with earlier pages. Errors equal "
         "bop_toolkit's on each part's evaluation points; matching as BOP's.",
         "",
         "Until the metric changed, this page's headline was ADD(-S), which is ADI for every "
