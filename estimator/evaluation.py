@@ -255,7 +255,7 @@ class EvaluationReport:
 
     @property
     def total(self) -> ObjectScore:
-        """Every class pooled (rates over all instances, as BOP pools them)."""
+        """Every class pooled (rates over all instances, as BOP pools them); obj_id 0."""
         total = ObjectScore(0, "all")
         for o in self.objects.values():
             total.add(o)
@@ -286,7 +286,7 @@ class EvaluationReport:
         ]
         for o in [*self.objects.values(), self.total]:
             lines.append(
-                f"| {o.obj_id if o.name != 'all' else 'all'} | {o.name if o.name != 'all' else ''} "
+                f"| {o.obj_id or 'all'} | {o.name if o.obj_id else ''} "
                 f"| {o.n_instances} | {o.n_estimates} | {_percent(o.rate())} "
                 f"({o.found['add_sym']}) | {_percent(o.rate('mssd'))} | {_percent(o.ar_mssd)} | "
                 f"{_percent(o.precision())} | {_percent(o.rate('adi'))} |"
@@ -332,7 +332,7 @@ def checkpoint_markdown(reports: dict[int, EvaluationReport], per_object: bool =
     for n, report in sorted(reports.items()):
         rows = [*report.objects.values()] if per_object else []
         for o in [*rows, report.total]:
-            name = "**all**" if o.name == "all" else o.name
+            name = o.name if o.obj_id else "**all**"
             lines.append(
                 f"| {name} | {n} | {o.n_instances} | {o.n_estimates} | "
                 f"{_percent(o.rate())} ({o.found['add_sym']}) | {_percent(o.rate('mssd'))} | "
