@@ -4,8 +4,8 @@
 :mod:`sim` (scene seeds from ``TRAIN_SEED_BASE`` on, disjoint from the test sets' seeds; random
 lighting, bin textures, piles with occlusion, sensor noise; half of the scenes in the robi
 profile) at 1280x720 and resizes them to the network's input scale as the front end does;
-trains :class:`sim.net.CenterVotingNet` on random crops with brightness, contrast and noise
-augmentation; calibrates the voting covariance on held-out renders made the same way; exports
+trains :class:`sim.net.CenterVotingNet` on crops (most of them centred on a part) with
+brightness, contrast and noise augmentation; calibrates the voting covariance on held-out renders made the same way; exports
 ONNX (opset 17) and writes the model card beside it.
 """
 
@@ -62,6 +62,16 @@ def profile_of(scene_index: int, robi_fraction: float) -> str:
     return "robi" if robi else "mixed"
 
 
+_CATALOGS: dict[str, Catalog] = {}
+
+
+def _cached_catalog(catalog_dir: str) -> Catalog:
+    """One load per rendering process (a worker renders many scenes of the same catalog)."""
+    if catalog_dir not in _CATALOGS:
+        _CATALOGS[catalog_dir] = load_catalog(catalog_dir)
+    return _CATALOGS[catalog_dir]
+
+
 def render_views(args: tuple) -> list[tuple]:
     """One scene's views as (image (Hp, W, 3) uint8, labels (h, w) uint8, vectors (2, h, w)
     float16, centers (K, 3) class and output-grid x, y), at the network's input scale; the
@@ -72,7 +82,7 @@ def render_views(args: tuple) -> list[tuple]:
     ``cv2.resize`` as the front end's pre-processing (the instance map by nearest neighbour).
     """
     catalog_dir, scene_index, views, seed_base, profile = args
-    catalog = load_catalog(catalog_dir)
+    catalog = _cached_catalog(catalog_dir)
     classes = _class_index(catalog)
     seed = scene_seed(seed_base, scene_index)
     full = REALSENSE_1280x720
@@ -150,6 +160,44 @@ def render_dataset(catalog_dir, n_scenes, views, seed_base, workers, desc, robi_
     return images, labels, vectors, [it[3] for it in items]
 
 
+def crop_origins(
+    image_hw: tuple[int, int],
+    crop_hw: tuple[int, int],
+    centers: list[np.ndarray],
+    rng: np.random.Generator,
+    on_part: float = 0.8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Top-left corners (y0, x0), multiples of 16, of one crop per image: with probability
+    ``on_part`` the crop holds a random visible instance's center (parts fill a small share of
+    a bin view; crops of empty bin floor teach little), otherwise anywhere.
+
+    Args:
+        centers: per image (K, 3) class and output-grid x, y of its visible instances.
+    Returns:
+        y0, x0: (B,) each.
+    """
+    H, W = image_hw
+    ch, cw = crop_hw
+    ny, nx = (H - ch) // 16 + 1, (W - cw) // 16 + 1
+    y0 = rng.integers(0, ny, size=len(centers)) * 16
+    x0 = rng.integers(0, nx, size=len(centers)) * 16
+    for b, c in enumerate(centers):
+        if len(c) == 0 or rng.random() >= on_part:
+            continue
+        _, cx, cy = c[rng.integers(len(c))]
+        px, py = cx * OUTPUT_STRIDE, cy * OUTPUT_STRIDE  # input pixels
+        # corners whose crop keeps the center at least 32 px from its border
+        lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
+        lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
+        lo_x, hi_x = max(lo_x, 0), min(hi_x, nx - 1)
+        lo_y, hi_y = max(lo_y, 0), min(hi_y, ny - 1)
+        if lo_x <= hi_x:
+            x0[b] = rng.integers(lo_x, hi_x + 1) * 16
+        if lo_y <= hi_y:
+            y0[b] = rng.integers(lo_y, hi_y + 1) * 16
+    return y0, x0
+
+
 def _normalise(images_uint8):
     import torch
 
@@ -170,7 +218,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     catalog = load_catalog(catalog_dir)
     n_classes = len(catalog)
     start = time.time()
-    images, labels, vectors, _ = render_dataset(
+    images, labels, vectors, centers = render_dataset(
         catalog_dir,
         config.n_scenes,
         config.views_per_scene,
@@ -206,9 +254,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         for g in opt.param_groups:
             g["lr"] = config.lr * 0.5 * (1 + np.cos(np.pi * frac))
         idx = rng.integers(len(images), size=config.batch)
-        H, W = images.shape[1:3]
-        y0 = rng.integers(0, (H - ch) // 16 + 1, size=config.batch) * 16
-        x0 = rng.integers(0, (W - cw) // 16 + 1, size=config.batch) * 16
+        y0, x0 = crop_origins(images.shape[1:3], config.crop, [centers[i] for i in idx], rng)
         xb = np.stack(
             [images[i, a : a + ch, b : b + cw] for i, a, b in zip(idx, y0, x0, strict=True)]
         )
@@ -289,6 +335,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
                 "iterations": it,
                 "batch": config.batch,
                 "crop": list(config.crop),
+                "crops_on_a_part": 0.8,
                 "final_loss": float(np.mean(losses[-100:])) if losses else None,
                 "render_minutes": round(render_minutes, 1),
                 "train_minutes": round(train_minutes, 1),
