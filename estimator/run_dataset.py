@@ -103,16 +103,23 @@ def run_dataset(
             else MultiViewEstimator(dataset.catalog, config)
         )
         members: dict[str, list[int]] = defaultdict(list)
+        labels: dict[int, list[int]] = {}  # stamp -> the instance of each detection
         for count, im_id in enumerate(scene.im_ids, start=1):
             view = scene.view(im_id)
             pairs = frontend.detect_with_truth(view)
             n_true += sum(k >= 0 for _, k in pairs)
             image = scene.load_rgb(im_id) if rotation else None
-            frame = Frame(count * 100_000_000, view.camera, view.T_world_cam, image)
-            estimator.update(frame, [d for d, _ in pairs])
-            report = estimator.last_report
-            for j, oid in report.assigned + report.started:
-                members[oid].append(pairs[j][1])
+            stamp = count * 100_000_000
+            labels[stamp] = [k for _, k in pairs]
+            estimator.update(
+                Frame(stamp, view.camera, view.T_world_cam, image), [d for d, _ in pairs]
+            )
+            # a track's detections may come from earlier views (founding pairs, held
+            # detections, merges): read them from the track
+            for absorbed, _ in estimator.last_report.merged:
+                members.pop(absorbed, None)
+            for oid, track in estimator.tracks.items():
+                members[oid] = [labels[s][j] for s, j in track.detections]
             bar.update(1)
             if count not in checkpoints:
                 continue

@@ -29,23 +29,31 @@ from estimator.association import (
     TrackView,
     assign,
     cost_matrix,
+    innovation_cost,
 )
 from estimator.camera import Camera
+from estimator.founding import (
+    FoundingConfig,
+    FoundingPair,
+    HeldDetection,
+    choose_pairs,
+    triangulate_pair,
+)
 from estimator.frontend.detection import Detection
+from estimator.merging import MergeCandidate, MergeConfig, merge_pairs
 from estimator.mixture import MixtureConfig, RotationMixture
 from estimator.objects import Catalog
 from estimator.rotation import RotationConfig, RotationMatcher
+from estimator.splitting import SplitConfig, outlier_views
 from estimator.templates import TemplateBank, TemplateConfig, build_template_bank
 from estimator.translation import (
     MIN_DEPTH,
-    PRIOR_DEPTH_REL_SIGMA,
     CenterObservations,
     TranslationEstimate,
     bbox_diagonal_ratio,
     estimate_translation,
     marginalize_oldest,
     predict,
-    prior_from_first_view,
 )
 
 TENTATIVE = "tentative"
@@ -106,10 +114,15 @@ class ObjectEstimate:
 class TrackerConfig:
     association: AssociationConfig = AssociationConfig()
     confirm_views: int = 2  # views before a track is confirmed
-    max_misses: int = 3  # consecutive views predicting a confirmed track in view, without it
+    # a confirmed track is dropped after this many consecutive views that predicted it in view
+    # without detecting it, or as many as it was seen in, whichever is more: in a pile a part
+    # is hidden for a while as the camera moves, and evidence for it should outweigh its misses
+    max_misses: int = 5
     max_misses_tentative: int = 2
     border_margin_px: float = 2.0  # a box this close to the border is truncated
-    prior_depth_rel_sigma: float = PRIOR_DEPTH_REL_SIGMA
+    founding: FoundingConfig = FoundingConfig()
+    merging: MergeConfig = MergeConfig()
+    splitting: SplitConfig = SplitConfig()
     rotation: RotationConfig = RotationConfig()
     mixture: MixtureConfig = MixtureConfig()
     templates: TemplateConfig = TemplateConfig()
@@ -138,6 +151,8 @@ class Track:
     misses: int = 0
     status: str = TENTATIVE
     detections: list[tuple[int, int]] = field(default_factory=list)  # (stamp_ns, index)
+    # per view of ``obs``, in its order: (stamp_ns, detection index, box depth in metres)
+    refs: list[tuple[int, int, float]] = field(default_factory=list)
     mixture: RotationMixture | None = None
     views_seen: int = 1
     # views waiting for a good enough translation: (stamp_ns, T_cam_world, K, mask)
@@ -152,12 +167,18 @@ class Track:
 
 @dataclass(frozen=True)
 class UpdateReport:
-    """What one update did: (detection index, object_id) pairs, and skipped detections."""
+    """What one update did: (detection index, object_id) pairs of this view's detections that
+    joined a track or founded one, tracks dropped (unseen, or merged into another: ``merged``
+    has (absorbed, survivor) pairs), tracks split off (new object_id, from object_id), held
+    detections (this view's, waiting for a partner) and skipped detections."""
 
     assigned: tuple[tuple[int, str], ...]
     started: tuple[tuple[int, str], ...]
     dropped: tuple[str, ...]
     skipped: tuple[tuple[int, str], ...]
+    held: tuple[int, ...] = ()
+    merged: tuple[tuple[str, str], ...] = ()
+    split: tuple[tuple[str, str], ...] = ()
 
 
 def validate_pose(T: np.ndarray, name: str = "T_world_cam") -> np.ndarray:
@@ -202,7 +223,9 @@ class MultiViewEstimator:
         self._images: dict[int, np.ndarray] = {}  # stamp_ns -> image, the last few frames
         self.tracks: dict[str, Track] = {}
         self._serial: dict[int, int] = {}
-        self._size_ratios: dict[int, float] = {}  # per class, for the first-view depth
+        self._size_ratios: dict[int, float] = {}  # per class, for the box depth
+        self._held: dict[int, list[HeldDetection]] = {}  # per class, waiting for a partner
+        self._view_serial = 0
         self.last_report = UpdateReport((), (), (), ())
         self.last_stamp_ns: int | None = None
 
@@ -231,9 +254,12 @@ class MultiViewEstimator:
             centers[j] = cam.undistort_points(det.center_uv)  # covariance kept (local scale ~1)
             usable.append(j)
 
+        self._view_serial += 1
         assigned: list[tuple[int, str]] = []
         started: list[tuple[int, str]] = []
+        held: list[int] = []
         touched: list[str] = []
+        box_depths = {j: self._box_depth(detections[j], K) for j in usable}
         for obj_id in sorted({detections[j].obj_id for j in usable} | self._classes()):
             det_idx = [j for j in usable if detections[j].obj_id == obj_id]
             track_ids = [k for k, t in self.tracks.items() if t.obj_id == obj_id]
@@ -245,13 +271,22 @@ class MultiViewEstimator:
                 centers[det_idx].reshape(-1, 2),
                 np.array([detections[j].center_cov for j in det_idx]).reshape(-1, 2, 2),
                 self.config.association,
-                np.array([self._box_depth(detections[j], K) for j in det_idx]),
+                np.array([box_depths[j] for j in det_idx]),
             )
             matched_tracks, matched_dets = set(), set()
             for i, jj in assign(cost):
                 j = det_idx[jj]
                 track = tracks[i]
-                self._add_view(track, T_cam_world, K, centers[j], detections[j], stamp, j)
+                self._add_view(
+                    track,
+                    T_cam_world,
+                    K,
+                    centers[j],
+                    detections[j].center_cov,
+                    stamp,
+                    j,
+                    box_depths[j],
+                )
                 matched_tracks.add(i)
                 matched_dets.add(jj)
                 assigned.append((j, track.object_id))
@@ -259,34 +294,70 @@ class MultiViewEstimator:
             for i, track in enumerate(tracks):
                 if i not in matched_tracks and self._predicted_in_view(track, T_cam_world, cam):
                     track.misses += 1
+            new: list[HeldDetection] = []
             for jj, j in enumerate(det_idx):
                 if jj in matched_dets:
                     continue
                 det = detections[j]
-                if self._touches_border(det, cam):
-                    skipped.append((j, "unmatched and truncated by the image border"))
-                    continue
-                track = self._start_track(T_world_cam, T_cam_world, K, centers[j], det, stamp, j)
-                started.append((j, track.object_id))
+                # a box truncated by the image border says nothing of the depth: such a
+                # detection is held, but founds a track only by triangulation
+                truncated = self._touches_border(det, cam)
+                new.append(
+                    HeldDetection(
+                        obj_id,
+                        stamp,
+                        self._view_serial,
+                        T_cam_world,
+                        K,
+                        centers[j],
+                        det.center_cov,
+                        float("nan") if truncated else box_depths[j],
+                        j,
+                        det.mask,
+                    )
+                )
+            pool = self._held.get(obj_id, [])
+            pairs = choose_pairs(pool, new, self.config.founding)
+            paired = {id(p.older) for p in pairs} | {id(p.newer) for p in pairs}
+            for pair in pairs:
+                track = self._found_track(pair)
+                started.append((pair.newer.index, track.object_id))
                 touched.append(track.object_id)
+            pool = [h for h in pool if id(h) not in paired]
+            for h in new:
+                if id(h) not in paired:
+                    pool.append(h)
+                    held.append(h.index)
+            pool = self._absorb_held(pool, [self.tracks[o] for _, o in started])
+            self._held[obj_id] = [
+                h
+                for h in pool
+                if self._view_serial - h.view_serial <= self.config.founding.hold_views
+            ]
+
+        split = self._split_tracks(sorted(set(touched)))
+        touched += [new_id for new_id, _ in split]
+        merged = self._merge_tracks()
+        absorbed = {a for a, _ in merged}
+        touched = [k for k in dict.fromkeys(touched) if k not in absorbed]
 
         if frame.image is not None:
             self._images[stamp] = frame.image
             for stale in sorted(self._images)[: -self.config.max_pending_views]:
                 del self._images[stale]
-            index_of = dict(assigned + started)
-            for j, oid in assigned + started:
-                track = self.tracks[oid]
-                track.pending.append((stamp, T_cam_world, K, detections[j].mask))
-                del track.pending[: -self.config.max_pending_views]
-            for oid in index_of.values():
+            for j, oid in assigned:
+                if oid in self.tracks:
+                    track = self.tracks[oid]
+                    track.pending.append((stamp, T_cam_world, K, detections[j].mask))
+                    del track.pending[: -self.config.max_pending_views]
+            for oid in touched:
                 self._measure_rotations(self.tracks[oid])
 
-        dropped = []
+        dropped = [a for a, _ in merged]
         for key in list(self.tracks):
             t = self.tracks[key]
             limit = (
-                self.config.max_misses
+                max(self.config.max_misses, t.views_seen)
                 if t.status == CONFIRMED
                 else self.config.max_misses_tentative
             )
@@ -294,7 +365,13 @@ class MultiViewEstimator:
                 dropped.append(key)
                 del self.tracks[key]
         self.last_report = UpdateReport(
-            tuple(assigned), tuple(started), tuple(dropped), tuple(skipped)
+            tuple(assigned),
+            tuple(started),
+            tuple(dropped),
+            tuple(skipped),
+            tuple(held),
+            tuple(merged),
+            tuple(split),
         )
         self.last_stamp_ns = stamp
         return [self._estimate(self.tracks[k], stamp) for k in touched if k in self.tracks]
@@ -321,6 +398,10 @@ class MultiViewEstimator:
                 raise KeyError(object_id)
             del self.tracks[object_id]
             return 1
+        if object_id is None:
+            self._held = {
+                k: v for k, v in self._held.items() if class_id is not None and k != class_id
+            }
         keys = [k for k, t in self.tracks.items() if class_id is None or t.obj_id == class_id]
         for k in keys:
             del self.tracks[k]
@@ -399,44 +480,163 @@ class MultiViewEstimator:
             return False
         return bool(cam.contains(cam.project(p)[None], margin=10.0)[0])
 
-    def _start_track(self, T_world_cam, T_cam_world, K, uv, det, stamp, index) -> Track:
-        model = self.catalog[det.obj_id]
-        prior_mean, prior_cov = prior_from_first_view(
-            T_world_cam,
-            K,
-            uv,
-            det.bbox_diagonal,
-            model.diameter,
-            self.config.prior_depth_rel_sigma,
-            self._size_ratio(det.obj_id),
-        )
-        obs = CenterObservations.empty().append(T_cam_world, K, uv, det.center_cov, stamp)
+    def _new_track(self, obj_id: int, obs, prior_mean, prior_cov, refs) -> Track:
         estimate = estimate_translation(obs, prior_mean, prior_cov)
-        serial = self._serial.get(det.obj_id, 0) + 1
-        self._serial[det.obj_id] = serial
-        object_id = f"{model.name}-{serial:03d}"
-        track = Track(object_id, det.obj_id, obs, prior_mean, prior_cov, estimate, stamp, stamp)
-        track.detections.append((stamp, index))
-        if self.config.confirm_views <= 1:
+        serial = self._serial.get(obj_id, 0) + 1
+        self._serial[obj_id] = serial
+        object_id = f"{self.catalog[obj_id].name}-{serial:03d}"
+        stamps = [r[0] for r in refs]
+        track = Track(
+            object_id, obj_id, obs, prior_mean, prior_cov, estimate, min(stamps), max(stamps)
+        )
+        track.refs = list(refs)
+        track.detections = [(r[0], r[1]) for r in refs]
+        track.views_seen = len(refs)
+        if len(obs) >= self.config.confirm_views:
             track.status = CONFIRMED
         self.tracks[object_id] = track
         return track
 
-    def _add_view(self, track, T_cam_world, K, uv, det, stamp, index) -> None:
-        track.obs = track.obs.append(T_cam_world, K, uv, det.center_cov, stamp)
+    def _found_track(self, pair: FoundingPair) -> Track:
+        """A track from two held detections of different views (:mod:`estimator.founding`)."""
+        a, b = pair.older, pair.newer
+        obs = (
+            CenterObservations.empty()
+            .append(a.T_cam_world, a.K, a.uv, a.cov, a.stamp_ns)
+            .append(b.T_cam_world, b.K, b.uv, b.cov, b.stamp_ns)
+        )
+        refs = [(a.stamp_ns, a.index, a.box_depth), (b.stamp_ns, b.index, b.box_depth)]
+        track = self._new_track(a.obj_id, obs, pair.prior_mean, pair.prior_cov, refs)
+        for h in (a, b):
+            track.pending.append((h.stamp_ns, h.T_cam_world, h.K, h.mask))
+        return track
+
+    def _absorb_held(self, pool: list[HeldDetection], tracks: list[Track]) -> list[HeldDetection]:
+        """Held detections of earlier views that a just-founded track explains join it."""
+        gate = self.config.association.gate_chi2
+        left = []
+        for h in pool:
+            best, best_cost = None, gate
+            for track in tracks:
+                if h.stamp_ns in track.obs.stamp_ns:
+                    continue
+                c = innovation_cost(track.view(), h.T_cam_world, h.K, h.uv, h.cov)
+                if c <= best_cost:
+                    best, best_cost = track, c
+            if best is None:
+                left.append(h)
+                continue
+            self._add_view(best, h.T_cam_world, h.K, h.uv, h.cov, h.stamp_ns, h.index, h.box_depth)
+            best.pending.append((h.stamp_ns, h.T_cam_world, h.K, h.mask))
+        return left
+
+    def _add_view(self, track, T_cam_world, K, uv, cov, stamp, index, box_depth) -> None:
+        track.obs = track.obs.append(T_cam_world, K, uv, cov, stamp)
+        track.refs.append((stamp, index, box_depth))
         track.views_seen += 1
         if len(track.obs) > self.config.max_track_views:
             track.obs, track.prior_mean, track.prior_cov = marginalize_oldest(
                 track.obs, track.prior_mean, track.prior_cov, track.estimate.t_world_obj
             )
+            track.refs.pop(0)
         track.estimate = estimate_translation(
             track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
         )
-        track.last_stamp_ns = stamp
+        track.last_stamp_ns = max(track.last_stamp_ns, stamp)
         track.misses = 0
         track.detections.append((stamp, index))
         if len(track.obs) >= self.config.confirm_views:
             track.status = CONFIRMED
+
+    def _split_tracks(self, keys: list[str]) -> list[tuple[str, str]]:
+        """Views a track cannot explain leave it (:mod:`estimator.splitting`); two or more that
+        agree with each other make a new track. Returns (new object_id, from object_id)."""
+        out = []
+        for key in keys:
+            track = self.tracks[key]
+            leave = outlier_views(track.estimate, self.config.splitting)
+            if not leave.any():
+                continue
+            gone = [r for r, x in zip(track.refs, leave, strict=True) if x]
+            split_obs = track.obs.select(leave)
+            track.obs = track.obs.select(~leave)
+            track.refs = [r for r, x in zip(track.refs, leave, strict=True) if not x]
+            gone_ids = {(r[0], r[1]) for r in gone}
+            track.detections = [d for d in track.detections if d not in gone_ids]
+            track.views_seen -= len(gone)
+            track.estimate = estimate_translation(
+                track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
+            )
+            if len(gone) < 2:
+                continue
+            # the leavers as a track of their own, if they agree: prior from the first two rays
+            first = [
+                HeldDetection(
+                    track.obj_id,
+                    int(split_obs.stamp_ns[k]),
+                    0,
+                    _T(split_obs, k),
+                    split_obs.K[k],
+                    split_obs.uv[k],
+                    np.linalg.inv(split_obs.info[k]),
+                    gone[k][2],
+                    gone[k][1],
+                )
+                for k in range(2)
+            ]
+            pair = triangulate_pair(first[0], first[1], self.config.founding)
+            if pair is None:
+                continue
+            est = estimate_translation(split_obs, pair.prior_mean, pair.prior_cov)
+            if np.any(est.chi2 > self.config.splitting.outlier_chi2):
+                continue
+            new = self._new_track(track.obj_id, split_obs, pair.prior_mean, pair.prior_cov, gone)
+            out.append((new.object_id, key))
+        return out
+
+    def _merge_tracks(self) -> list[tuple[str, str]]:
+        """Tracks of one class that converged merge into the one with more views
+        (:mod:`estimator.merging`). Returns (absorbed, survivor) pairs."""
+        out = []
+        for obj_id in sorted(self._classes()):
+            keys = sorted(k for k, t in self.tracks.items() if t.obj_id == obj_id)
+            cands = [
+                MergeCandidate(k, t.estimate.t_world_obj, t.estimate.cov, t.obs)
+                for k in keys
+                if len((t := self.tracks[k]).obs) >= 2
+            ]
+            diameter = self.catalog[obj_id].diameter
+            for ka, kb in merge_pairs(cands, diameter, self.config.merging):
+                a, b = self.tracks[ka], self.tracks[kb]
+                keep, gone = (a, b) if (len(a.obs), kb) >= (len(b.obs), ka) else (b, a)
+                self._combine(keep, gone)
+                del self.tracks[gone.object_id]
+                out.append((gone.object_id, keep.object_id))
+        return out
+
+    def _combine(self, keep: Track, gone: Track) -> None:
+        order = np.argsort(np.concatenate([keep.obs.stamp_ns, gone.obs.stamp_ns]), kind="stable")
+        refs = keep.refs + gone.refs
+        keep.obs = keep.obs.concat(gone.obs)
+        keep.refs = [refs[k] for k in order]
+        keep.detections = sorted(set(keep.detections) | set(gone.detections))
+        keep.views_seen += gone.views_seen
+        keep.first_stamp_ns = min(keep.first_stamp_ns, gone.first_stamp_ns)
+        keep.last_stamp_ns = max(keep.last_stamp_ns, gone.last_stamp_ns)
+        keep.misses = min(keep.misses, gone.misses)
+        if gone.status == CONFIRMED:
+            keep.status = CONFIRMED
+        keep.pending = sorted(keep.pending + gone.pending, key=lambda p: p[0])
+        if gone.mixture is not None:
+            if keep.mixture is None:
+                keep.mixture = gone.mixture
+            else:
+                for comp in gone.mixture.components:
+                    for R, c in comp.members:
+                        keep.mixture.add(R, c)
+        keep.estimate = estimate_translation(
+            keep.obs, keep.prior_mean, keep.prior_cov, start=keep.estimate.t_world_obj
+        )
 
     def _estimate(self, track: Track, stamp: int) -> ObjectEstimate:
         T = np.eye(4)
@@ -469,6 +669,14 @@ class MultiViewEstimator:
             n_views=track.views_seen,
             status=track.status,
         )
+
+
+def _T(obs: CenterObservations, k: int) -> np.ndarray:
+    """(4, 4) T_cam_world of view ``k``."""
+    T = np.eye(4)
+    T[:3, :3] = obs.R_cam_world[k]
+    T[:3, 3] = obs.t_cam_world[k]
+    return T
 
 
 def predicted_center(track: Track, T_cam_world: np.ndarray, K: np.ndarray) -> np.ndarray:

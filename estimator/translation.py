@@ -84,6 +84,27 @@ class CenterObservations:
             np.concatenate([self.stamp_ns, np.array([stamp_ns], np.int64)]),
         )
 
+    def select(self, keep: np.ndarray) -> CenterObservations:
+        """The views where ``keep`` ((N,) bool or indices) holds, in order."""
+        return CenterObservations(
+            self.R_cam_world[keep],
+            self.t_cam_world[keep],
+            self.K[keep],
+            self.uv[keep],
+            self.info[keep],
+            self.stamp_ns[keep],
+        )
+
+    def concat(self, other: CenterObservations) -> CenterObservations:
+        """Both sets of views, ordered by stamp (stable)."""
+        both = CenterObservations(
+            *(
+                np.concatenate([getattr(self, f), getattr(other, f)])
+                for f in ("R_cam_world", "t_cam_world", "K", "uv", "info", "stamp_ns")
+            )
+        )
+        return both.select(np.argsort(both.stamp_ns, kind="stable"))
+
 
 @dataclass(frozen=True, eq=False)
 class TranslationEstimate:

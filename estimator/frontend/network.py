@@ -13,6 +13,7 @@ image's own pixels.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from dataclasses import dataclass
@@ -178,14 +179,7 @@ class NetworkFrontend:
             raise ModelError(self.model_path, f"onnxruntime cannot load it ({exc})") from None
         self.input_name = self.session.get_inputs()[0].name
         base = voting or VotingConfig()
-        self.voting = VotingConfig(
-            base.n_hypotheses,
-            base.inlier_cos,
-            base.min_inliers,
-            base.max_instances,
-            self.card.cov_scale,
-            base.min_center_var,
-        )
+        self.voting = dataclasses.replace(base, cov_scale=self.card.cov_scale)
         self.seed = seed
         # a vote this spread out comes from a fragment or a confused field, not a part
         self.max_center_std_px = max_center_std_px

@@ -29,6 +29,7 @@ class VotingConfig:
     min_center_var: float = 0.05  # output px^2: a floor for a perfectly consistent field
     max_scoring_pixels: int = 400  # hypotheses are scored on a random subset of this size
     member_cos: float = 0.9  # looser: the pixels that make the instance's mask (about 25 deg)
+    member_radius_factor: float = 1.3  # x the 90th percentile of the inliers' distances
 
 
 @dataclass(frozen=True, eq=False)
@@ -112,7 +113,13 @@ def vote_instances(
         strict = cos > config.inlier_cos
         if strict.sum() >= config.min_inliers:
             center, cov = _least_squares_center(p[strict], v[strict])
-        members = (cos > config.member_cos) | inliers | (np.linalg.norm(d, axis=1) < 3.0)
+        # ... but only near it: a pixel of another part of the class far along the same line
+        # also points at it (measured: without this bound the boxes of parts in a pile were
+        # three times too large, and their pixels were lost to the first instance)
+        dist = np.linalg.norm(d, axis=1)
+        core = dist[strict] if strict.sum() >= config.min_inliers else dist[inliers]
+        radius = config.member_radius_factor * np.percentile(core, 90) + 2.0
+        members = (((cos > config.member_cos) | inliers) & (dist <= radius)) | (dist < 3.0)
         cov = cov * config.cov_scale + np.eye(2) * config.min_center_var
         out.append(VotedInstance(center, cov, remaining[members], int(members.sum())))
         remaining = remaining[~members]

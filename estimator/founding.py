@@ -1,0 +1,187 @@
+"""Founding tracks: detections that fit no track are held, and paired across views.
+
+A learned front end's box is a poor depth cue: the voted mask of an occluded or fragmented part
+is small, so the depth where the model would fill the box (SSD-6D) is often wrong by a factor
+of two. A track founded from one view inherits that error. Instead, a detection that no track
+explains is *held* with its view for up to ``hold_views`` views. Each view's unexplained
+detections are paired with the held detections of their class from earlier views: the two rays
+are triangulated (:func:`triangulate_pair`), and a pair founds a track when
+
+- the rays meet: the two-view least-squares residual (1 degree of freedom) is within
+  ``pair_gate_chi2`` of the centers' covariances;
+- the point lies in front of both cameras, with at least ``min_parallax_deg`` between the rays;
+- neither box contradicts the triangulated depth by more than ``box_depth_factor`` (a loose
+  check: it separates parts of one class that lie on one epipolar line, but never sets a depth).
+
+The pairs are chosen jointly (:func:`scipy.optimize.linear_sum_assignment` on the pair costs,
+which add a weak box term to the residual). Two views of a camera that does not move give no
+parallax; such a pair (the same pixel twice) founds a track from the box depth, as a single
+fixed camera can do no better.
+
+Pure functions on the held detections; the tracker owns the state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from estimator.translation import (
+    MIN_DEPTH,
+    CenterObservations,
+    estimate_translation,
+)
+
+GATED = 1e9
+
+
+@dataclass(frozen=True)
+class FoundingConfig:
+    hold_views: int = 4  # a held detection waits this many later views for a partner
+    pair_gate_chi2: float = 16.0  # two-view residual (1 dof) of a founding pair
+    min_parallax_deg: float = 1.0  # below this the pair is 'static' (no triangulation)
+    box_depth_factor: float = 2.5  # triangulated depth within [1/f, f] x each box's depth
+    box_depth_log_sigma: float = 0.7  # weak box term of the pair cost: log-depth std
+    prior_rel_sigma: float = 1.0  # founded track's prior: isotropic, this x the depth
+    static_gate_chi2: float = 16.0  # a static pair: the two centers agree to this
+
+    def __post_init__(self) -> None:
+        if self.hold_views < 1 or self.box_depth_factor <= 1 or self.pair_gate_chi2 <= 0:
+            raise ValueError(f"invalid founding config: {self}")
+
+
+@dataclass(frozen=True, eq=False)
+class HeldDetection:
+    """A detection no track explained, with its view.
+
+    T_cam_world: (4, 4); K: (3, 3); uv: (2,) undistorted pixels; cov: (2, 2) px^2;
+    box_depth: metres, the depth the box suggests (NaN when the box is truncated by the image
+    border); index: the detection's index in its view;
+    mask: (H, W) bool or None (for the rotation step once a track is founded).
+    """
+
+    obj_id: int
+    stamp_ns: int
+    view_serial: int  # the estimator's count of views when it was held
+    T_cam_world: np.ndarray
+    K: np.ndarray
+    uv: np.ndarray
+    cov: np.ndarray
+    box_depth: float
+    index: int
+    mask: np.ndarray | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FoundingPair:
+    """A pair that founds a track: ``older`` and ``newer`` held detections, the prior of the
+    new track (mean (3,), cov (3, 3)) and whether the pair was static (box depth)."""
+
+    older: HeldDetection
+    newer: HeldDetection
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    static: bool
+    cost: float
+
+
+def _ray(h: HeldDetection) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre (3,) and unit direction (3,) of a held detection's center, world frame."""
+    R, t = h.T_cam_world[:3, :3], h.T_cam_world[:3, 3]
+    d = R.T @ np.linalg.solve(h.K, np.array([h.uv[0], h.uv[1], 1.0]))
+    return -R.T @ t, d / np.linalg.norm(d)
+
+
+def midpoint(c1, d1, c2, d2) -> tuple[np.ndarray, float, float]:
+    """Midpoint of the closest approach of two rays; the distances along each (may be < 0)."""
+    w = c1 - c2
+    b = d1 @ d2
+    denom = 1.0 - b * b
+    if denom < 1e-12:
+        return 0.5 * (c1 + c2), np.nan, np.nan
+    s1 = (b * (d2 @ w) - (d1 @ w)) / denom
+    s2 = ((d2 @ w) - b * (d1 @ w)) / denom
+    return 0.5 * (c1 + s1 * d1 + c2 + s2 * d2), float(s1), float(s2)
+
+
+def _obs(a: HeldDetection, b: HeldDetection) -> CenterObservations:
+    return (
+        CenterObservations.empty()
+        .append(a.T_cam_world, a.K, a.uv, a.cov, a.stamp_ns)
+        .append(b.T_cam_world, b.K, b.uv, b.cov, b.stamp_ns)
+    )
+
+
+def box_prior(h: HeldDetection, rel_sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The one-view prior: the center back-projected at the box depth, isotropic std
+    ``rel_sigma`` x depth."""
+    c, d = _ray(h)
+    z_dir = h.T_cam_world[2, :3] @ d  # depth per unit length along the ray
+    point = c + d * (h.box_depth / max(z_dir, 1e-9))
+    return point, np.eye(3) * (rel_sigma * h.box_depth) ** 2
+
+
+def triangulate_pair(
+    a: HeldDetection, b: HeldDetection, config: FoundingConfig
+) -> FoundingPair | None:
+    """The founding pair of two detections of one class from different views, or None when
+    gated out (see the module docstring)."""
+    ca, da = _ray(a)
+    cb, db = _ray(b)
+    parallax = np.degrees(np.arccos(np.clip(da @ db, -1.0, 1.0)))
+    if parallax < config.min_parallax_deg:
+        if not np.isfinite(b.box_depth):
+            return None
+        # no triangulation: the same pixel again founds a track at the newer box's depth
+        r = a.uv - b.uv
+        chi2 = float(r @ np.linalg.solve(a.cov + b.cov, r))
+        if np.linalg.norm(ca - cb) > 0.05 * b.box_depth or chi2 > config.static_gate_chi2:
+            return None
+        mean, cov = box_prior(b, 0.5)
+        return FoundingPair(a, b, mean, cov, True, chi2)
+    X, sa, sb = midpoint(ca, da, cb, db)
+    if not (np.isfinite(sa) and sa > 0 and sb > 0):
+        return None
+    depth_b = float(b.T_cam_world[2, :3] @ X + b.T_cam_world[2, 3])
+    prior_cov = np.eye(3) * (config.prior_rel_sigma * depth_b) ** 2
+    obs = _obs(a, b)
+    est = estimate_translation(obs, X, prior_cov)
+    t = est.t_world_obj
+    residual = float(np.sum(est.chi2))  # squared Mahalanobis residuals of both centers
+    if residual > config.pair_gate_chi2:
+        return None
+    cost = residual
+    for h in (a, b):
+        z = float(h.T_cam_world[2, :3] @ t + h.T_cam_world[2, 3])
+        if z <= MIN_DEPTH:
+            return None
+        if not np.isfinite(h.box_depth):  # truncated by the image border: no box check
+            continue
+        ratio = z / h.box_depth
+        if not (1 / config.box_depth_factor <= ratio <= config.box_depth_factor):
+            return None
+        cost += (np.log(ratio) / config.box_depth_log_sigma) ** 2
+    return FoundingPair(a, b, t, prior_cov, False, float(cost))
+
+
+def choose_pairs(
+    held: list[HeldDetection], new: list[HeldDetection], config: FoundingConfig
+) -> list[FoundingPair]:
+    """Pairs (older held, new) of one class chosen jointly by minimum total cost; each detection
+    in at most one pair."""
+    if not held or not new:
+        return []
+    pairs: dict[tuple[int, int], FoundingPair] = {}
+    cost = np.full((len(held), len(new)), GATED)
+    for i, a in enumerate(held):
+        for j, b in enumerate(new):
+            if a.view_serial == b.view_serial or a.obj_id != b.obj_id:
+                continue
+            pair = triangulate_pair(a, b, config)
+            if pair is not None:
+                pairs[(i, j)] = pair
+                cost[i, j] = pair.cost
+    rows, cols = linear_sum_assignment(cost)
+    return [pairs[(i, j)] for i, j in zip(rows, cols, strict=True) if cost[i, j] < GATED]
