@@ -5,8 +5,8 @@
 lighting, bin textures, piles with occlusion, sensor noise; half of the scenes in the robi
 profile) at 1280x720 and resizes them to the network's input scale as the front end does;
 trains :class:`sim.net.CenterVotingNet` on crops (most of them centred on a part) with
-brightness, contrast and noise augmentation; calibrates the voting covariance on held-out renders made the same way; exports
-ONNX (opset 17) and writes the model card beside it.
+brightness, contrast and noise augmentation; calibrates the voting covariance on held-out
+renders made the same way; exports ONNX (opset 17) and writes the model card beside it.
 """
 
 from __future__ import annotations
