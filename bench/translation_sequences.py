@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from estimator.metrics import association_score, nees, track_identities
+from estimator.metrics import association_score, nees, track_identities, update_members
 from estimator.objects import Catalog, load_catalog
 from estimator.tracker import CONFIRMED, MultiViewEstimator, TrackerConfig
 from sim.scenes import SceneSpec
@@ -61,11 +61,12 @@ def run_sequences(
         )
         est = MultiViewEstimator(catalog, config)
         members: dict[str, list[int]] = defaultdict(list)
+        labels: dict[int, list[int]] = {}
         for count, view in enumerate(seq.views, start=1):
             est.update(view.frame, view.detections)
             n_true += sum(x >= 0 for x in view.instance_of)
-            for j, oid in est.last_report.assigned + est.last_report.started:
-                members[oid].append(view.instance_of[j])
+            labels[int(view.frame.stamp_ns)] = list(view.instance_of)
+            update_members(members, est.tracks, est.last_report.merged, labels)
             if count not in CHECKPOINTS:
                 continue
             identity = track_identities(members)

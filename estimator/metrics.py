@@ -52,6 +52,25 @@ def association_score(
     )
 
 
+def update_members(
+    members: dict[str, list],
+    tracks: dict,
+    merged: tuple[tuple[str, str], ...],
+    labels: dict[int, list],
+) -> None:
+    """Refresh ``members`` (object_id -> instance of each detection) after an update.
+
+    A track's detections may come from earlier views (founding pairs, held detections,
+    merges), so they are read from the tracks (``track.detections``: (stamp_ns, index)
+    pairs) and labelled through ``labels`` (stamp_ns -> the instance of each detection of
+    that view). Tracks merged away leave; dropped ones keep their last members.
+    """
+    for absorbed, _ in merged:
+        members.pop(absorbed, None)
+    for oid, track in tracks.items():
+        members[oid] = [labels[s][j] for s, j in track.detections]
+
+
 def nees(error: np.ndarray, cov: np.ndarray) -> float:
     """Normalised estimation error squared e^T P^-1 e (expected value: the dimension)."""
     return float(error @ np.linalg.solve(cov, error))

@@ -20,7 +20,13 @@ from tqdm import tqdm
 from estimator.evaluation import PoseResult
 from estimator.fates import InstanceFate, TrackPose, instance_fates
 from estimator.frontend.oracle import OracleFrontend
-from estimator.metrics import AssociationScore, association_score, nees, track_identities
+from estimator.metrics import (
+    AssociationScore,
+    association_score,
+    nees,
+    track_identities,
+    update_members,
+)
 from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
 
 CHECKPOINTS = (1, 2, 4, 8)
@@ -114,12 +120,7 @@ def run_dataset(
             estimator.update(
                 Frame(stamp, view.camera, view.T_world_cam, image), [d for d, _ in pairs]
             )
-            # a track's detections may come from earlier views (founding pairs, held
-            # detections, merges): read them from the track
-            for absorbed, _ in estimator.last_report.merged:
-                members.pop(absorbed, None)
-            for oid, track in estimator.tracks.items():
-                members[oid] = [labels[s][j] for s, j in track.detections]
+            update_members(members, estimator.tracks, estimator.last_report.merged, labels)
             bar.update(1)
             if count not in checkpoints:
                 continue

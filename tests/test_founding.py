@@ -1,0 +1,149 @@
+"""Founding tracks from two views, merging converged tracks, splitting disagreeing views."""
+
+import numpy as np
+import pytest
+
+from estimator.founding import FoundingConfig, HeldDetection, choose_pairs, triangulate_pair
+from estimator.frontend.detection import Detection
+from estimator.merging import MergeCandidate, MergeConfig, merge_pairs
+from estimator.splitting import SplitConfig, outlier_views
+from estimator.tracker import Frame, MultiViewEstimator
+from estimator.translation import CenterObservations, estimate_translation
+from sim.scenes import REALSENSE_1280x720
+
+K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
+
+
+def _T_cam_world(cam_x: float, target=(0.0, 0.0, 0.0), height=0.6) -> np.ndarray:
+    """A camera at (cam_x, 0, height) looking at ``target`` (world z up)."""
+    eye = np.array([cam_x, 0.0, height])
+    z = np.asarray(target) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R_world_cam = np.stack([x, y, z], 1)
+    T = np.eye(4)
+    T[:3, :3] = R_world_cam.T
+    T[:3, 3] = -R_world_cam.T @ eye
+    return T
+
+
+def _project(T_cam_world, p):
+    q = T_cam_world[:3, :3] @ p + T_cam_world[:3, 3]
+    return (K @ (q / q[2]))[:2], q[2]
+
+
+def _held(T, p, serial, box_scale=1.0, obj_id=1, index=0):
+    uv, z = _project(T, p)
+    return HeldDetection(obj_id, serial * 10, serial, T, K, uv, np.eye(2), z * box_scale, index)
+
+
+def test_two_views_triangulate_the_point_without_the_box():
+    p = np.array([0.05, -0.03, 0.02])
+    a = _held(_T_cam_world(-0.15), p, 1, box_scale=1.8)  # boxes wrong by 1.8x and 0.6x
+    b = _held(_T_cam_world(0.15), p, 2, box_scale=0.6)
+    pair = triangulate_pair(a, b, FoundingConfig())
+    assert pair is not None and not pair.static
+    np.testing.assert_allclose(pair.prior_mean, p, atol=1e-6)
+    obs = (
+        CenterObservations.empty()
+        .append(a.T_cam_world, K, a.uv, a.cov, 1)
+        .append(b.T_cam_world, K, b.uv, b.cov, 2)
+    )
+    est = estimate_translation(obs, pair.prior_mean, pair.prior_cov)
+    np.testing.assert_allclose(est.t_world_obj, p, atol=1e-6)
+
+
+def test_rays_that_miss_or_boxes_that_contradict_are_gated():
+    p = np.array([0.0, 0.0, 0.0])
+    a = _held(_T_cam_world(-0.15), p, 1)
+    # the second view sees a point 1 cm off the first ray, sideways: no intersection
+    b = _held(_T_cam_world(0.15), p + [0.0, 0.01, 0.0], 2)
+    assert triangulate_pair(a, b, FoundingConfig()) is None
+    # the rays meet, but the box says the part is 3x farther than they do
+    c = _held(_T_cam_world(0.15), p, 2, box_scale=3.0)
+    assert triangulate_pair(a, c, FoundingConfig()) is None
+    # a box truncated by the border (NaN) is not checked
+    d = _held(_T_cam_world(0.15), p, 2, box_scale=np.nan)
+    assert triangulate_pair(a, d, FoundingConfig()) is not None
+
+
+def test_pairs_are_chosen_jointly_and_never_within_one_view():
+    pts = [np.array([-0.04, 0.0, 0.0]), np.array([0.04, 0.0, 0.0])]
+    Ta, Tb = _T_cam_world(-0.15), _T_cam_world(0.15)
+    held = [_held(Ta, p, 1, index=k) for k, p in enumerate(pts)]
+    new = [_held(Tb, p, 2, index=k) for k, p in enumerate(pts[::-1])]
+    pairs = choose_pairs(held, new, FoundingConfig())
+    assert sorted((p.older.index, p.newer.index) for p in pairs) == [(0, 1), (1, 0)]
+    assert choose_pairs(held, held, FoundingConfig()) == []
+
+
+def test_a_static_camera_founds_from_the_box():
+    p = np.array([0.0, 0.0, 0.0])
+    T = _T_cam_world(0.0 + 1e-9, height=0.6)
+    a, b = _held(T, p, 1, box_scale=1.1), _held(T, p, 2, box_scale=1.1)
+    pair = triangulate_pair(a, b, FoundingConfig())
+    assert pair is not None and pair.static
+    assert np.isclose(np.linalg.norm(pair.prior_mean - T[:3, :3].T @ -T[:3, 3]), 0.66, rtol=1e-3)
+
+
+def _cand(key, t, sigma, stamps, uv=None):
+    n = len(stamps)
+    obs = CenterObservations(
+        np.repeat(np.eye(3)[None], n, 0),
+        np.zeros((n, 3)),
+        np.repeat(K[None], n, 0),
+        np.zeros((n, 2)) if uv is None else np.asarray(uv, float),
+        np.repeat(np.eye(2)[None], n, 0),
+        np.asarray(stamps, np.int64),
+    )
+    return MergeCandidate(key, np.asarray(t, float), np.eye(3) * sigma**2, obs)
+
+
+def test_tracks_merge_when_they_converge_and_were_never_seen_apart():
+    cfg = MergeConfig()
+    a = _cand("a", [0, 0, 0.5], 0.002, [1, 2])
+    b = _cand("b", [0.001, 0, 0.5], 0.002, [3, 4])
+    far = _cand("c", [0.03, 0, 0.5], 0.002, [5, 6])
+    assert merge_pairs([a, b, far], diameter=0.05, config=cfg) == [("a", "b")]
+    # uncertain, but more than a quarter diameter apart: never one part
+    loose = _cand("d", [0.02, 0, 0.5], 0.05, [7, 8])
+    assert merge_pairs([a, loose], diameter=0.05, config=cfg) == []
+    # one view saw both, 30 px apart: two parts
+    a2 = _cand("a", [0, 0, 0.5], 0.002, [1, 2], uv=[[0, 0], [0, 0]])
+    b2 = _cand("b", [0.001, 0, 0.5], 0.002, [2, 4], uv=[[30, 0], [0, 0]])
+    assert merge_pairs([a2, b2], diameter=0.05, config=cfg) == []
+
+
+def test_views_that_disagree_leave_only_with_a_majority_left():
+    class Est:
+        chi2 = np.array([0.5, 1.0, 40.0, 0.2, 60.0])
+
+    np.testing.assert_array_equal(outlier_views(Est, SplitConfig()), [0, 0, 1, 0, 1])
+    Est.chi2 = np.array([0.5, 40.0, 60.0])  # one view would remain: no split
+    assert not outlier_views(Est, SplitConfig()).any()
+    with pytest.raises(ValueError):
+        SplitConfig(min_inliers=1)
+
+
+def test_estimator_holds_a_lone_detection_and_founds_on_the_second_view(robi_catalog):
+    cam = REALSENSE_1280x720
+    p = np.array([0.02, 0.01, 0.0])
+    est = MultiViewEstimator(robi_catalog)
+    obj_id = next(iter(robi_catalog))
+    dia = robi_catalog[obj_id].diameter
+    ids = []
+    for k, x in enumerate([-0.12, 0.0, 0.12]):
+        T_cam_world = _T_cam_world(x)
+        q = T_cam_world[:3, :3] @ p + T_cam_world[:3, 3]
+        uv = (cam.K @ (q / q[2]))[:2]
+        side = cam.K[0, 0] * dia * 0.6 / q[2]
+        box = [uv[0] - side / 2, uv[1] - side / 2, side, side]
+        det = Detection(obj_id, np.array(box), uv, np.eye(2), None)
+        est.update(Frame(k + 1, cam, np.linalg.inv(T_cam_world)), [det])
+        ids.append(sorted(est.tracks))
+    assert ids[0] == [] and est.last_report.assigned and len(ids[1]) == 1 and ids[2] == ids[1]
+    track = est.tracks[ids[1][0]]
+    assert [s for s, _ in track.detections] == [1, 2, 3]
+    np.testing.assert_allclose(track.estimate.t_world_obj, p, atol=1e-4)
