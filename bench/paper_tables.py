@@ -53,6 +53,12 @@ FULL = {"scenes": 50, "views": 8, "seed": 300, "width": 1280, "height": 720}
 # and 301, /tmp/ds_big 200, real meshes 300, translation pages 100 and 1000-1029, the demo 900,
 # the network's training scenes scene_seed(7000000, .)).
 TUNING_SEED = 4242
+FRONTEND_TEXT = {
+    "oracle": "the oracle front end (true centers + 2 px Gaussian noise, visible masks, seed 0; "
+    "an upper bound, not what a user gets)",
+    "network": "the learned front end (`models/robi_like.onnx` and voting, what a user gets), "
+    "as the paper's methods all used one localization network",
+}
 QUICK = {"scenes": 2, "views": 8, "seed": 301, "width": 640, "height": 360}
 ORACLE = OracleConfig(center_sigma_px=2.0, seed=0)
 METHODS = ("cosypose_rgb", "cosypose_rgbd", "ours", "simultaneous")
@@ -98,7 +104,24 @@ def ensure_dataset(root: Path, quick: bool, catalog_dir: str, profile: str = "mi
     return load_dataset(root)
 
 
-def _run_tracker(dataset, banks, simultaneous: bool, progress: bool) -> MethodRun:
+def make_frontend(dataset, kind: str, model: str | None = None):
+    """The detections every method sees: ``oracle`` (true centers + 2 px noise, true visible
+    masks) or ``network`` (the learned front end, as a user gets it), labelled with the
+    instance each lies on for scoring only."""
+    if kind == "oracle":
+        return OracleFrontend(dataset, ORACLE)
+    if kind == "network":
+        from estimator.frontend.network import NetworkFrontend
+        from estimator.run_dataset import LabelledNetworkFrontend
+        from service.cli import DEFAULT_MODEL
+
+        return LabelledNetworkFrontend(
+            dataset, NetworkFrontend(model or DEFAULT_MODEL, dataset.catalog)
+        )
+    raise ValueError(f"front end: expected 'oracle' or 'network', got {kind!r}")
+
+
+def _run_tracker(dataset, banks, simultaneous: bool, progress: bool, frontend) -> MethodRun:
     run = MethodRun(matching_s={k: [] for k in dataset.catalog})
     start = time.perf_counter()
 
@@ -113,7 +136,7 @@ def _run_tracker(dataset, banks, simultaneous: bool, progress: bool) -> MethodRu
 
     out = run_dataset(
         dataset,
-        OracleFrontend(dataset, ORACLE),
+        frontend,
         checkpoints=CHECKPOINTS,
         show_progress=progress,
         rotation=True,
@@ -124,12 +147,11 @@ def _run_tracker(dataset, banks, simultaneous: bool, progress: bool) -> MethodRu
     return run
 
 
-def _run_cosypose(dataset, banks, use_depth: bool, progress: bool) -> MethodRun:
+def _run_cosypose(dataset, banks, use_depth: bool, progress: bool, frontend) -> MethodRun:
     run = MethodRun(matching_s={k: [] for k in dataset.catalog})
     run.results = {n: [] for n in CHECKPOINTS}
     run.targets = {n: [] for n in CHECKPOINTS}
     start = time.perf_counter()
-    frontend = OracleFrontend(dataset, ORACLE)
     matchers = {k: RotationMatcher(b) for k, b in banks.items()}
     multi = {k: MultiScaleMatcher(m) for k, m in matchers.items()}
     aligners = {k: DepthAligner(dataset.catalog[k]) for k in banks}
@@ -144,7 +166,7 @@ def _run_cosypose(dataset, banks, use_depth: bool, progress: bool) -> MethodRun:
             view = scene.view(im_id)
             image = scene.load_rgb(im_id)
             depth = scene.load_depth(im_id) if use_depth else None
-            for det in frontend.detect(view):
+            for det, _ in frontend.detect_with_truth(view):
                 t0 = time.perf_counter()
                 if use_depth:
                     T, score = rgbd_candidate(
@@ -178,12 +200,14 @@ def _run_cosypose(dataset, banks, use_depth: bool, progress: bool) -> MethodRun:
     return run
 
 
-def run_all(dataset, banks, progress: bool = True) -> dict[str, MethodRun]:
+def run_all(dataset, banks, progress: bool = True, frontend=None) -> dict[str, MethodRun]:
+    """Every method on the same detections (default: the oracle front end)."""
+    frontend = frontend or make_frontend(dataset, "oracle")
     return {
-        "cosypose_rgb": _run_cosypose(dataset, banks, False, progress),
-        "cosypose_rgbd": _run_cosypose(dataset, banks, True, progress),
-        "ours": _run_tracker(dataset, banks, False, progress),
-        "simultaneous": _run_tracker(dataset, banks, True, progress),
+        "cosypose_rgb": _run_cosypose(dataset, banks, False, progress, frontend),
+        "cosypose_rgbd": _run_cosypose(dataset, banks, True, progress, frontend),
+        "ours": _run_tracker(dataset, banks, False, progress, frontend),
+        "simultaneous": _run_tracker(dataset, banks, True, progress, frontend),
     }
 
 
@@ -343,9 +367,9 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
         f"Dataset `{meta['dataset']}` (profile {meta.get('profile', 'unknown')}): "
         f"{meta['scenes']} scenes x {meta['views']} views "
         f"({meta['resolution']}), rendered by this command with seed {meta['dataset_seed']} "
-        "when absent. Detections: the oracle front end (true centers + 2 px Gaussian noise, "
-        "visible masks, seed 0), the same for every method. Every number on this page comes "
-        "from that run; the raw numbers are in `benchmarks.json` beside it.",
+        f"when absent. Detections: {FRONTEND_TEXT[meta.get('frontend', 'oracle')]}, the same "
+        "for every method. Every number on this page comes from that run; the raw numbers are "
+        "in the `.json` file beside it.",
         "",
         "Scores, in % of the instances more than 75% visible in the 4th / 8th view of each "
         "scene, estimated from the views up to it: **ADD-sym < 0.1 d** (the headline: ADD, the "
@@ -487,6 +511,14 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+def dataset_seed(root: Path, default: int) -> int:
+    """The seed the dataset was rendered with (its synth.json), else the spec's."""
+    try:
+        return int(json.loads((root / "synth.json").read_text())["seed"])
+    except (OSError, KeyError, ValueError, TypeError):
+        return default
+
+
 def main(args) -> int:
     from estimator.templates import build_template_bank
 
@@ -494,7 +526,8 @@ def main(args) -> int:
     root = Path(args.dataset)
     dataset = ensure_dataset(root, args.quick, args.catalog, args.profile)
     banks = {k: build_template_bank(m, show_progress=True) for k, m in dataset.catalog.items()}
-    runs = run_all(dataset, banks, progress=True)
+    frontend = make_frontend(dataset, args.frontend, args.model)
+    runs = run_all(dataset, banks, progress=True, frontend=frontend)
     scores = score_runs(dataset, runs)
     spec = QUICK if args.quick else FULL
     first = dataset.scene(dataset.scene_ids[0])
@@ -507,8 +540,9 @@ def main(args) -> int:
         "scenes": len(dataset.scene_ids),
         "views": len(first.im_ids),
         "resolution": f"{camera.width}x{camera.height}",
-        "dataset_seed": spec["seed"],
+        "dataset_seed": dataset_seed(root, spec["seed"]),
         "profile": dataset.profile,
+        "frontend": args.frontend,
     }
     text = markdown(dataset, scores, meta)
     out = Path(args.out)

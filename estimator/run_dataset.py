@@ -1,10 +1,10 @@
 """Runs the estimator over a BOP dataset, one view at a time in im_id order, and measures it.
 
 Each scene gets a fresh :class:`MultiViewEstimator`. After the views listed in ``checkpoints``
-(1, 2, 4, 8 by default) every track is scored against the ground truth: its instance is the one
-most of its detections came from (the oracle front end knows it), and its translation error is
-measured in the world frame and relative to the distance from the last camera. At one view
-tentative tracks count (no track can be confirmed yet); afterwards only confirmed ones.
+(2, 4, 8 by default: a track is founded on two views) every confirmed track is scored against
+the ground truth: its instance is the one most of its detections came from (the front end's
+labels know it), and its translation error is measured in the world frame and relative to the
+distance from the last camera.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from estimator.metrics import (
 )
 from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
 
-CHECKPOINTS = (1, 2, 4, 8)
+CHECKPOINTS = (2, 4, 8)  # a track needs two views (estimator.founding)
 
 
 class LabelledNetworkFrontend:
