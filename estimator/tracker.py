@@ -162,7 +162,7 @@ class Track:
 
     def view(self) -> TrackView:
         e = self.estimate
-        return TrackView(e.t_world_obj, e.cov, self.obs, self.prior_mean, self.prior_cov, e.cost)
+        return TrackView(e.t_world_obj, e.cov, self.obs)
 
 
 @dataclass(frozen=True)
@@ -271,7 +271,6 @@ class MultiViewEstimator:
                 centers[det_idx].reshape(-1, 2),
                 np.array([detections[j].center_cov for j in det_idx]).reshape(-1, 2, 2),
                 self.config.association,
-                np.array([box_depths[j] for j in det_idx]),
             )
             matched_tracks, matched_dets = set(), set()
             for i, jj in assign(cost):
