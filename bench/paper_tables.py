@@ -41,6 +41,7 @@ from bench.baselines import (
     rgb_candidate,
     rgbd_candidate,
 )
+from estimator.errors import PosefuseError
 from estimator.evaluation import PoseResult, evaluate
 from estimator.frontend.oracle import OracleConfig, OracleFrontend
 from estimator.rotation import RotationMatcher
@@ -525,13 +526,20 @@ def main(args) -> int:
     start = time.perf_counter()
     root = Path(args.dataset)
     dataset = ensure_dataset(root, args.quick, args.catalog, args.profile)
-    banks = {k: build_template_bank(m, show_progress=True) for k, m in dataset.catalog.items()}
     frontend = make_frontend(dataset, args.frontend, args.model)
+    first = dataset.scene(dataset.scene_ids[0])
+    camera = first.view(first.im_ids[0]).camera
+    if args.frontend == "network":
+        w, h = frontend.network.card.image_size
+        if (camera.width, camera.height) != (w, h):
+            raise PosefuseError(
+                f"--frontend network: the model expects {w}x{h} images, {root} has "
+                f"{camera.width}x{camera.height} (--quick renders small ones)"
+            )
+    banks = {k: build_template_bank(m, show_progress=True) for k, m in dataset.catalog.items()}
     runs = run_all(dataset, banks, progress=True, frontend=frontend)
     scores = score_runs(dataset, runs)
     spec = QUICK if args.quick else FULL
-    first = dataset.scene(dataset.scene_ids[0])
-    camera = first.view(first.im_ids[0]).camera
     meta = {
         "command": "posefuse bench " + " ".join(shlex.quote(a) for a in args.argv),
         "minutes": (time.perf_counter() - start) / 60,

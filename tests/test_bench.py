@@ -114,3 +114,17 @@ def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_bank
     all_row = next(line for line in table2.splitlines() if line.startswith("| **all**"))
     cells = [c.strip() for c in all_row.strip("|").split("|")][1:7]
     assert all(c != "-" for c in cells)
+
+
+def test_the_learned_front_end_needs_full_resolution_images(tmp_path, capsys):
+    from bench.paper_tables import make_frontend
+    from service.cli import main
+
+    with pytest.raises(ValueError, match="'oracle' or 'network'"):
+        make_frontend(None, "magic")
+    code = main(
+        ["bench", "--dataset", str(tmp_path / "bin"), "--quick", "--frontend", "network"]
+        + ["--out", str(tmp_path / "b.md")]
+    )
+    assert code == 2
+    assert "the model expects 1280x720 images" in capsys.readouterr().err
