@@ -228,7 +228,8 @@ def run_demo(
     print(
         "\nd: the part's diameter. ADD-sym: mean distance of the model points to the closest "
         "symmetric equivalent of the true pose; MSSD: the same with the largest distance; "
-        "ok: ADD-sym < 0.1 d. '-': no rotation yet (seen once) or no true part of the class left."
+        "ok: ADD-sym < 0.1 d. '-': no rotation yet (its depth not yet known to 5%) or no true "
+        "part of the class left."
     )
     print(
         f"{correct} of {len(rows_all)} confirmed estimates within ADD-sym 0.1 d of a true part "
