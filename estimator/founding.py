@@ -106,7 +106,8 @@ def midpoint(c1, d1, c2, d2) -> tuple[np.ndarray, float, float]:
     return 0.5 * (c1 + s1 * d1 + c2 + s2 * d2), float(s1), float(s2)
 
 
-def _obs(a: HeldDetection, b: HeldDetection) -> CenterObservations:
+def pair_observations(a: HeldDetection, b: HeldDetection) -> CenterObservations:
+    """The two detections' centers as a track's observations, ``a`` first."""
     return (
         CenterObservations.empty()
         .append(a.T_cam_world, a.K, a.uv, a.cov, a.stamp_ns)
@@ -146,7 +147,7 @@ def triangulate_pair(
         return None
     depth_b = float(b.T_cam_world[2, :3] @ X + b.T_cam_world[2, 3])
     prior_cov = np.eye(3) * (config.prior_rel_sigma * depth_b) ** 2
-    obs = _obs(a, b)
+    obs = pair_observations(a, b)
     est = estimate_translation(obs, X, prior_cov)
     t = est.t_world_obj
     residual = float(np.sum(est.chi2))  # squared Mahalanobis residuals of both centers

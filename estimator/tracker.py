@@ -37,6 +37,7 @@ from estimator.founding import (
     FoundingPair,
     HeldDetection,
     choose_pairs,
+    pair_observations,
     triangulate_pair,
 )
 from estimator.frontend.detection import Detection
@@ -499,11 +500,7 @@ class MultiViewEstimator:
     def _found_track(self, pair: FoundingPair) -> Track:
         """A track from two held detections of different views (:mod:`estimator.founding`)."""
         a, b = pair.older, pair.newer
-        obs = (
-            CenterObservations.empty()
-            .append(a.T_cam_world, a.K, a.uv, a.cov, a.stamp_ns)
-            .append(b.T_cam_world, b.K, b.uv, b.cov, b.stamp_ns)
-        )
+        obs = pair_observations(a, b)
         refs = [(a.stamp_ns, a.index, a.box_depth), (b.stamp_ns, b.index, b.box_depth)]
         track = self._new_track(a.obj_id, obs, pair.prior_mean, pair.prior_cov, refs)
         for h in (a, b):
