@@ -32,6 +32,7 @@ from estimator.symmetry import (
 )
 
 UNITS_TO_METRES = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+PLAUSIBLE_DIAMETER_M = (0.005, 2.0)
 N_MODEL_POINTS = 2000
 MODEL_POINTS_SEED = 0
 
@@ -93,8 +94,11 @@ class ObjectModel:
         return describe_symmetries(self.symmetries_discrete, self.symmetries_continuous)
 
 
-def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
+def load_mesh(path: str | Path, units: str = "mm", check_size: bool = True) -> trimesh.Trimesh:
     """Read an STL, PLY or OBJ surface and convert it to metres.
+
+    ``check_size`` refuses a part whose diameter, read in ``units``, lies outside 5 mm .. 2 m:
+    almost always a unit mistake (a millimetre mesh read as metres is a 100 m part).
 
     Raises:
         MeshError: the file is missing, not a mesh, empty, or has non-finite vertices.
@@ -114,11 +118,31 @@ def load_mesh(path: str | Path, units: str = "mm") -> trimesh.Trimesh:
         raise MeshError(path, "file holds no triangles")
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(path, "mesh has non-finite vertex coordinates")
+    if len(loaded.faces) < 4:
+        raise MeshError(path, f"mesh has {len(loaded.faces)} triangles; a part needs a surface")
     mesh = loaded.copy()
     mesh.apply_scale(UNITS_TO_METRES[units])
     if mesh.area <= 0:
         raise MeshError(path, "mesh has zero surface area")
+    if check_size:
+        diameter = mesh_diameter(mesh)
+        if not PLAUSIBLE_DIAMETER_M[0] <= diameter <= PLAUSIBLE_DIAMETER_M[1]:
+            guesses = [
+                u for u, f in UNITS_TO_METRES.items()
+                if PLAUSIBLE_DIAMETER_M[0] <= diameter / UNITS_TO_METRES[units] * f
+                <= PLAUSIBLE_DIAMETER_M[1]
+            ]
+            hint = f"; did you mean --units {' or '.join(guesses)}?" if guesses else ""
+            raise MeshError(
+                path,
+                f"diameter {_length(diameter)} read in {units} is implausible for a part "
+                f"(between 5 mm and 2 m expected){hint}",
+            )
     return mesh
+
+
+def _length(metres: float) -> str:
+    return f"{metres * 1000:.3g} mm" if metres < 1 else f"{metres:.4g} m"
 
 
 def mesh_diameter(mesh: trimesh.Trimesh) -> float:
@@ -318,7 +342,7 @@ def load_catalog(models_dir: str | Path, detect_symmetries_if_missing: bool = Fa
         if not isinstance(entry, dict):
             raise CatalogError(info_path, f"{where}: entry must be an object")
         obj_id = int(key)
-        mesh = load_mesh(model_path(models_dir, obj_id), units="mm")
+        mesh = load_mesh(model_path(models_dir, obj_id), units="mm", check_size=False)
         has_syms = "symmetries_discrete" in entry or "symmetries_continuous" in entry
         disc, cont = _parse_symmetries(entry, where, info_path)
         name = str(entry.get("name", f"obj_{obj_id:06d}"))

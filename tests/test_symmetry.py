@@ -70,11 +70,16 @@ def test_off_centre_symmetry_axis_carries_its_offset():
     assert len(rep.discrete) == 11
 
 
-def test_thin_hex_bar_counts_as_continuous_within_the_tolerance():
-    # Turning a 10 mm hex bar by 30 degrees moves its surface by < 2.5% of its 54 mm diameter.
+def test_thin_hex_bar_is_six_fold_with_continuous_as_the_flagged_alternative():
+    # Turning a 10 mm hex bar by 30 degrees moves its surface by < 2.5% of its 54 mm diameter, so
+    # continuous passes the tolerance; but the bar is exactly 6-fold, and its facets are what an
+    # image shows: the exact group is claimed and the continuous one left for a person to choose.
     mesh = trimesh.creation.cylinder(radius=0.01, height=0.05, sections=6)
     rep = _detect(mesh)
-    assert len(rep.continuous) == 1
+    assert not rep.continuous
+    assert rep.axes[0].order == 6
+    assert [a.order for a in rep.alternatives if a.order == 0] == [0]
+    assert any("continuous" in flag for flag in rep.flags)
 
 
 def test_asymmetric_part_has_no_symmetry():
@@ -111,3 +116,80 @@ def test_symmetry_transforms_identity_first_and_bop_combination():
 def test_bad_diameter_is_rejected():
     with pytest.raises(ValueError, match="diameter"):
         detect_symmetries(trimesh.creation.box([1, 1, 1]), 0.0)
+
+
+def _wheel(n_spokes: int, height: float = 0.0015, width: float = 0.008) -> trimesh.Trimesh:
+    """A disc (80 mm) with ``n_spokes`` shallow spokes on both faces: exactly dihedral of order
+    n, yet every rotation about the axis moves the surface by at most 1.5 mm, within the 2.5%
+    tolerance, so a test of single angles would call it continuous."""
+    parts = [trimesh.creation.cylinder(radius=0.04, height=0.01, sections=128)]
+    for k in range(n_spokes):
+        for side in (1.0, -1.0):
+            spoke = trimesh.creation.box([0.03, width, height])
+            spoke.apply_translation([0.018, 0.0, side * (0.005 + height / 2)])
+            spoke.apply_transform(
+                trimesh.transformations.rotation_matrix(2 * np.pi * k / n_spokes, [0, 0, 1])
+            )
+            parts.append(spoke)
+    return trimesh.util.concatenate(parts)
+
+
+def _rotations_about(discrete, axis):
+    out = []
+    for T in discrete:
+        rotvec = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+        if abs(abs(rotvec @ axis) - np.linalg.norm(rotvec)) < 1e-6:
+            out.append(np.degrees(np.linalg.norm(rotvec)))
+    return sorted(out)
+
+
+@pytest.mark.parametrize("n_spokes", [4, 5])
+def test_exact_spoked_wheel_is_n_fold_not_continuous(n_spokes):
+    rep = _detect(_wheel(n_spokes))
+    assert not rep.continuous, rep.describe()
+    assert rep.axes[0].order == n_spokes
+    # the whole group about the axis: exactly the n-1 non-trivial turns, nothing finer
+    got = _rotations_about(rep.discrete, np.array([0.0, 0.0, 1.0]))
+    expected = sorted(min(a, 360 - a) for a in 360.0 * np.arange(1, n_spokes) / n_spokes)
+    np.testing.assert_allclose(sorted(min(a, 360 - a) for a in got), expected, atol=0.5)
+    # the looser group it would have claimed is reported and flagged for a person to decide
+    assert any(a.order == 0 for a in rep.alternatives)
+    assert any("continuous about z" in flag and "not claimed" in flag for flag in rep.flags)
+    assert len(rep.discrete) == 2 * n_spokes - 1  # with the n flips between the faces
+    _assert_group_preserves_surface(_wheel(n_spokes), rep.discrete, 2e-4)
+
+
+def test_claims_report_their_residual_and_margin():
+    rep = _detect(trimesh.creation.cylinder(radius=0.02, height=0.06, sections=64))
+    for axis in rep.axes:
+        assert 0.0 <= axis.residual <= rep.tol_frac
+        assert rep.margin(axis) == pytest.approx(rep.tol_frac - axis.residual)
+    assert rep.group_residual <= rep.tol_frac
+    assert rep.flags == ()  # an exact cylinder has nothing near the tolerance
+
+
+def test_a_near_miss_is_flagged_not_claimed():
+    # a box whose x and y sides differ by 4.5 mm (6% of its diameter): the 4-fold turn misses the
+    # tolerance by less than 1% of the diameter
+    box = trimesh.creation.box([0.050, 0.0545, 0.02])
+    rep = _detect(box)
+    assert all(a.order == 2 for a in rep.axes)
+    flagged = [a for a in rep.alternatives if a.order == 4]
+    assert flagged and rep.tol_frac < flagged[0].residual <= rep.tol_frac + rep.near_frac
+    assert any("4-fold" in flag and "misses the tolerance" in flag for flag in rep.flags)
+
+
+def test_a_person_overrides_detection_with_a_spec():
+    from estimator.symmetry import symmetry_from_spec
+
+    mesh = _wheel(5)
+    d = mesh_diameter(mesh)
+    rep = _detect(mesh)
+    disc, cont = symmetry_from_spec("continuous", mesh, d, rep)
+    assert len(disc) == 0 and np.allclose(np.abs(cont[0].axis), [0, 0, 1], atol=1e-3)
+    disc, cont = symmetry_from_spec("5:z", mesh, d)
+    assert cont == () and len(disc) == 4
+    assert symmetry_from_spec("none", mesh, d)[0].shape == (0, 4, 4)
+    for bad in ("1", "73", "five", "4:w"):
+        with pytest.raises(ValueError, match="symmetry"):
+            symmetry_from_spec(bad, mesh, d)
