@@ -46,7 +46,12 @@ from estimator.mixture import MixtureConfig, RotationMixture
 from estimator.objects import Catalog
 from estimator.rotation import RotationConfig, RotationMatcher
 from estimator.splitting import SplitConfig, outlier_views
-from estimator.templates import TemplateBank, TemplateConfig, build_template_bank
+from estimator.templates import (
+    TemplateBank,
+    TemplateConfig,
+    build_template_bank,
+    build_template_banks,
+)
 from estimator.translation import (
     MIN_DEPTH,
     CenterObservations,
@@ -412,6 +417,16 @@ class MultiViewEstimator:
     def banks(self) -> dict[int, TemplateBank]:
         """The template banks built or loaded so far (to share with other estimators)."""
         return {k: m.bank for k, m in self._matchers.items()}
+
+    def prepare_templates(self, workers: int = 2, progress=None) -> None:
+        """Load or build every class's template bank now, building missing ones in ``workers``
+        processes (see :func:`estimator.templates.build_template_banks`)."""
+        todo = [self.catalog[k] for k in self.catalog if k not in self._matchers]
+        banks = build_template_banks(
+            todo, self.config.templates, self._template_cache_dir, workers, progress
+        )
+        for obj_id, bank in banks.items():
+            self._matchers[obj_id] = RotationMatcher(bank, self.config.rotation)
 
     def matcher(self, obj_id: int) -> RotationMatcher:
         """The rotation matcher of a class (its template bank built or loaded on first use)."""
