@@ -31,9 +31,11 @@ def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list
 
 
 def table(objects: list[dict]) -> str:
+    """A plain-text table of ObjectEstimate dicts, units in the headers, with a legend."""
     lines = [
         f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5}  "
-        f"{'x':>8} {'y':>8} {'z':>8}  {'roll':>7} {'pitch':>7} {'yaw':>7}  {'sigma_t mm':>10}"
+        f"{'x (m)':>8} {'y (m)':>8} {'z (m)':>8}  {'roll (deg)':>10} {'pitch (deg)':>11} "
+        f"{'yaw (deg)':>9}  {'sigma_t (mm)':>12}"
     ]
     for o in objects:
         rpy = Rotation.from_quat(o["q"]).as_euler("xyz", degrees=True)
@@ -42,7 +44,12 @@ def table(objects: list[dict]) -> str:
         t = o["t"]
         lines.append(
             f"{o['object_id']:<18} {o['status']:<10} {o['n_views']:>5} {o['confidence']:>5.2f}  "
-            f"{t[0]:>8.4f} {t[1]:>8.4f} {t[2]:>8.4f}  {rpy[0]:>7.1f} {rpy[1]:>7.1f} "
-            f"{rpy[2]:>7.1f}  {sigma:>10.2f}"
+            f"{t[0]:>8.4f} {t[1]:>8.4f} {t[2]:>8.4f}  {rpy[0]:>10.1f} {rpy[1]:>11.1f} "
+            f"{rpy[2]:>9.1f}  {sigma:>12.2f}"
         )
+    lines += [
+        "x, y, z: the object's origin in the world frame; roll, pitch, yaw: its rotation as",
+        "extrinsic x-y-z Euler angles; conf: confidence in [0, 1]; sigma_t: square root of the",
+        "trace of the translation covariance.",
+    ]
     return "\n".join(lines)
