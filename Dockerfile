@@ -9,6 +9,7 @@ COPY sim sim
 COPY service service
 COPY clients clients
 COPY bench bench
+COPY cli cli
 COPY catalogs catalogs
 COPY models models
 RUN pip install --no-cache-dir -e .

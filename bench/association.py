@@ -59,7 +59,7 @@ def with_setting(config, path: list[str], value: float):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.cli import DEFAULT_MODEL
+    from service.resources import DEFAULT_MODEL
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True)

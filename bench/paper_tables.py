@@ -114,7 +114,7 @@ def make_frontend(dataset, kind: str, model: str | None = None):
     if kind == "network":
         from estimator.frontend.network import NetworkFrontend
         from estimator.run_dataset import LabelledNetworkFrontend
-        from service.cli import DEFAULT_MODEL
+        from service.resources import DEFAULT_MODEL
 
         return LabelledNetworkFrontend(
             dataset, NetworkFrontend(model or DEFAULT_MODEL, dataset.catalog)

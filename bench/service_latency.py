@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "cli",
             "serve",
             "--listen",
             f"tcp/127.0.0.1:{zport}",

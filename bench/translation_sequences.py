@@ -96,7 +96,7 @@ def run_sequences(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.cli import DEFAULT_CATALOG
+    from service.resources import DEFAULT_CATALOG
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--catalog", default=DEFAULT_CATALOG)

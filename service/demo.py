@@ -1,10 +1,10 @@
-"""The demo recording: bin scenes of the procedural catalog as a cell would publish them, with
-the ground truth stored beside, and the scoring of estimates against it.
+"""The demo: a recording of bin scenes with their ground truth, replayed through the daemon and
+scored against it.
 
-A recording holds, per scene: the camera messages of :func:`clients.camera.scene_messages`, a
-reset request on ``{cell}/@v1/estimator/reset`` before the scene (the scenes share the world
-frame, so the estimator forgets the previous bin), and the scene's true object poses on
-``{cell}/@v1/groundtruth/{scene_id}``.
+A demo recording (written by :func:`clients.demo.make_recording`) holds, per scene: the camera
+messages a cell's camera publishes, a reset request on ``{cell}/@v1/estimator/reset`` before the
+scene (the scenes share the world frame, so the estimator forgets the previous bin), and the
+scene's true object poses on ``{cell}/@v1/groundtruth/{scene_id}``.
 """
 
 from __future__ import annotations
@@ -13,46 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from clients.camera import scene_messages
-from service.codec import decode_groundtruth, encode_groundtruth, encode_reset
-from service.foxglove import FoxgloveMirror
+from service.codec import decode_groundtruth
 from service.keys import Keys
-from service.recording import Recorder
-
-SCENE_GAP_NS = 10_000_000_000  # 10 s of stamp time between scenes
 
 
 def groundtruth_key(cell: str, scene_id: int) -> str:
     return f"{Keys(cell).root}/groundtruth/{scene_id}"
-
-
-def make_recording(
-    dataset,
-    scene_ids,
-    out: str | Path,
-    cell: str = "posefuse",
-    rate_hz: float = 2.0,
-    seed: int = 0,
-    catalog=None,
-) -> Path:
-    """Write the demo recording of ``scene_ids`` of a BOP dataset, with Foxglove channels (the
-    meshes of ``catalog`` show the ground truth)."""
-    keys = Keys(cell)
-    t0 = 1_000_000_000_000
-    metadata = {"cell": cell, "scenes": " ".join(map(str, scene_ids))}
-    mirror = FoxgloveMirror(cell, catalog)
-    with Recorder(out, metadata=metadata, mirror=mirror) as rec:
-        for n, scene_id in enumerate(scene_ids):
-            start = t0 + n * SCENE_GAP_NS
-            rec.write(keys.reset, encode_reset(), start - 1)
-            view = dataset.scene(scene_id).view(dataset.scene(scene_id).im_ids[0])
-            truth = [(g.obj_id, view.T_world_cam @ g.T_cam_obj) for g in view.gts]
-            rec.write(groundtruth_key(cell, scene_id), encode_groundtruth(scene_id, truth), start)
-            for offset, key, payload in scene_messages(
-                dataset, scene_id, cell, "cam0", rate_hz, t0_ns=start, seed=seed
-            ):
-                rec.write(key, payload, start + int(offset * 1e9))
-    return Path(out)
 
 
 def score_segment(

@@ -13,7 +13,7 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, JsonConfigSettingsSource, SettingsConfigDict
 
-REPO = Path(__file__).resolve().parents[1]
+from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 
 class Settings(BaseSettings):
@@ -32,8 +32,8 @@ class Settings(BaseSettings):
     http_host: str = "127.0.0.1"
     http_port: int = 8000
     # estimator
-    catalog: Path = REPO / "catalogs" / "robi_like"
-    model: Path = REPO / "models" / "robi_like.onnx"
+    catalog: Path = Path(DEFAULT_CATALOG)
+    model: Path = Path(DEFAULT_MODEL)
     onnx_threads: int = 2
     # input handling
     max_payload_bytes: int = 16 * 1024 * 1024

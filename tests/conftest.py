@@ -8,7 +8,7 @@ import pytest
 
 from estimator.camera import Camera
 from estimator.objects import load_catalog
-from service.cli import DEFAULT_CATALOG
+from service.resources import DEFAULT_CATALOG
 from sim.scenes import SceneSpec
 from sim.synth import SynthConfig, generate_dataset
 

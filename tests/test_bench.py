@@ -88,7 +88,7 @@ def test_fusion_keeps_instances_apart_and_merges_views(robi_catalog):
 
 
 def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_banks):
-    from service.cli import main
+    from cli.main import main
 
     out = tmp_path / "benchmarks.md"
     code = main(["bench", "--dataset", str(tmp_path / "bin"), "--quick", "--out", str(out)])
@@ -118,7 +118,7 @@ def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_bank
 
 def test_the_learned_front_end_needs_full_resolution_images(tmp_path, capsys):
     from bench.paper_tables import make_frontend
-    from service.cli import main
+    from cli.main import main
 
     with pytest.raises(ValueError, match="'oracle' or 'network'"):
         make_frontend(None, "magic")

@@ -5,12 +5,12 @@ import sys
 
 import pytest
 
-from service.cli import main
+from cli.main import main
 
 
 def run_cli(*args):
     proc = subprocess.run(
-        [sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=120
     )
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -54,7 +54,7 @@ def test_synth_rejects_bad_arguments(tmp_path, capsys, args, message):
 
 
 def test_replay_needs_a_mode_and_lockstep_needs_the_api(tmp_path, capsys):
-    from service.cli import DEFAULT_RECORDING
+    from service.resources import DEFAULT_RECORDING
 
     assert main(["replay", DEFAULT_RECORDING]) == 2
     assert "--offline" in capsys.readouterr().err
@@ -72,3 +72,137 @@ def test_replay_needs_a_mode_and_lockstep_needs_the_api(tmp_path, capsys):
     )
     assert code == 2
     assert "--lockstep needs the daemon's API" in capsys.readouterr().err
+
+
+def _commands():
+    """(name, parser) of every sub-command, the entry points' included."""
+    import argparse
+
+    from cli.main import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+def test_service_imports_no_layer_above_it():
+    """service/ is used by clients/, bench/ and cli/, never the other way round."""
+    import ast
+    from pathlib import Path
+
+    import service
+
+    above = {"bench", "clients", "cli"}
+    offences = []
+    for path in sorted(Path(service.__file__).parent.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            else:
+                continue
+            offences += [
+                f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] in above
+            ]
+    assert not offences
+
+
+def test_every_option_of_every_command_has_help_and_shows_its_default():
+    from cli.common import HelpFormatter
+
+    commands = _commands()
+    assert {"catalog", "synth", "run-dataset", "quickstart", "train", "serve", "objects"} <= set(
+        commands
+    )
+    assert "bench" in commands  # the project's own posefuse.commands entry point
+    for name, parser in commands.items():
+        assert issubclass(parser.formatter_class, HelpFormatter), name
+        for action in parser._actions:
+            assert action.help and action.help.strip(), (name, action.dest)
+        text = parser.format_help()
+        for action in parser._actions:
+            if action.required and action.option_strings:
+                assert "(required)" in text, (name, action.dest)
+    text = commands["synth"].format_help()
+    assert "(default: 8)" in text and "(default: mixed)" in text
+    assert "default: None" not in text
+
+
+def test_outputs_go_under_runs_unless_told_otherwise():
+    from cli.main import build_parser
+
+    parser = build_parser()
+    defaults = {
+        "make-demo": ["make-demo"],
+        "replay": ["replay", "x.mcap"],
+        "quickstart": ["quickstart"],
+        "bench": ["bench", "--dataset", "d"],
+    }
+    for name, argv in defaults.items():
+        args = parser.parse_args(argv)
+        for dest in ("out", "work"):
+            value = getattr(args, dest, None)
+            if value is not None:
+                assert str(value).startswith("runs/"), (name, dest, value)
+
+
+def test_plugin_command_groups_come_after_the_built_in_ones_by_name(monkeypatch, capsys):
+    from importlib.metadata import EntryPoint
+
+    import cli.main
+
+    def register_zz(sub):
+        sub.add_parser("zz-extra", help="a plugin's command").set_defaults(func=lambda a: 7)
+
+    def register_aa(sub):
+        sub.add_parser("aa-extra", help="another").set_defaults(func=lambda a: 0)
+
+    monkeypatch.setattr(
+        cli.main,
+        "entry_points",
+        lambda group: [
+            EntryPoint("zz", f"{__name__}:_never_used", group),
+            EntryPoint("aa", f"{__name__}:_never_used", group),
+            EntryPoint("broken", "no_such_module_anywhere:register", group),
+        ],
+    )
+    loaders = {"zz": register_zz, "aa": register_aa}
+    monkeypatch.setattr(EntryPoint, "load", lambda self: loaders.get(self.name) or _fail())
+    names = list(_commands())
+    assert names.index("make-demo") < names.index("aa-extra") < names.index("zz-extra")
+    assert "broken" in capsys.readouterr().err
+    assert cli.main.main(["zz-extra"]) == 7
+
+
+def _fail():
+    raise ImportError("no module named no_such_module_anywhere")
+
+
+def test_objects_table_names_its_units():
+    from clients.query import table
+
+    estimate = {
+        "object_id": "gear-1",
+        "status": "confirmed",
+        "n_views": 4,
+        "confidence": 0.9,
+        "t": [0.1, -0.2, 0.55],
+        "q": [0.0, 0.0, 0.0, 1.0],
+        "cov": [0.0] * 36,
+    }
+    header = table([estimate]).splitlines()[0]
+    for unit in ("x (m)", "y (m)", "z (m)", "roll (deg)", "pitch (deg)", "yaw (deg)", "(mm)"):
+        assert unit in header
+
+
+def test_quickstart_runs_the_estimator_and_says_what_next(tmp_path):
+    """The whole quickstart in its own process: about a minute when the templates are cached."""
+    out = tmp_path / "qs"
+    code, stdout, err = run_cli("quickstart", "--out", str(out))
+    assert code == 0, err
+    assert "| object | views | instances | estimates | ADD-sym-0.1d | MSSD-0.1d |" in stdout
+    assert "| **all** | 4 |" in stdout and "| **all** | 8 |" in stdout
+    assert any(line.startswith("next:") for line in stdout.splitlines())
+    assert (out / "run" / "detection_rate.md").is_file()
+    assert (out / "overlay_000000_000000.png").is_file()

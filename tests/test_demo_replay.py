@@ -9,10 +9,10 @@ import pytest
 
 from estimator.objects import load_catalog
 from estimator.tracker import MultiViewEstimator
-from service.cli import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
 from service.foxglove import FoxgloveMirror
 from service.recording import Recorder, read_messages
 from service.replay import replay_offline, write_estimates_json
+from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
 from service.settings import Settings
 from service.worker import EstimatorWorker, make_detector
 
@@ -62,7 +62,7 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
 
 @pytest.mark.parametrize("cut", [0.3, 0.7])
 def test_truncated_recording_gives_the_frames_before_the_damage(tmp_path, cut, default_banks):
-    from service.cli import main
+    from cli.main import main
 
     data = Path(DEFAULT_RECORDING).read_bytes()
     damaged = tmp_path / "cut.mcap"

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from cli.main import main
 from estimator import pose_error
 from estimator.dataset import load_dataset
 from estimator.errors import ResultsError
@@ -22,7 +23,6 @@ from estimator.evaluation import (
     read_results,
     write_results,
 )
-from service.cli import main
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "bop_pose_errors.json"
 

@@ -49,7 +49,7 @@ def test_voting_ignores_too_few_pixels():
 @pytest.fixture(scope="module")
 def tiny_model(robi_catalog, tmp_path_factory):
     pytest.importorskip("torch", reason="the training smoke test needs the train extra")
-    from service.cli import DEFAULT_CATALOG
+    from service.resources import DEFAULT_CATALOG
     from sim.train import TrainConfig, train
 
     path = tmp_path_factory.mktemp("model") / "tiny.onnx"

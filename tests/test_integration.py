@@ -21,8 +21,8 @@ import pytest
 from clients.camera import scene_messages
 from estimator.dataset import load_dataset
 from estimator.tracker import MultiViewEstimator
-from service.cli import DEFAULT_MODEL
 from service.codec import estimate_to_dict
+from service.resources import DEFAULT_MODEL
 from service.worker import EstimatorWorker
 
 N_VIEWS = 4
@@ -83,7 +83,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
         [
             sys.executable,
             "-m",
-            "service.cli",
+            "cli",
             "serve",
             "--listen",
             f"tcp/127.0.0.1:{zport}",
@@ -124,7 +124,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
                 [
                     sys.executable,
                     "-m",
-                    "service.cli",
+                    "cli",
                     "publish",
                     "--dataset",
                     str(full_res_dataset),

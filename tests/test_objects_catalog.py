@@ -8,7 +8,7 @@ import pytest
 
 from estimator.objects import load_catalog, load_mesh, mesh_diameter
 from estimator.symmetry import detect_symmetries
-from service.cli import DEFAULT_CATALOG
+from service.resources import DEFAULT_CATALOG
 from sim.catalog import robi_like_catalog
 
 # name -> (diameter mm, description of the detected symmetries, discrete count without identity)

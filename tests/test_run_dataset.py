@@ -4,7 +4,7 @@ import csv
 
 import pytest
 
-from service.cli import main
+from cli.main import main
 
 
 def test_run_dataset_writes_errors_at_1_2_4_and_more_views(small_dataset_root, tmp_path, capsys):

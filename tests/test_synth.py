@@ -145,8 +145,8 @@ def test_bop_files_are_consistent(tmp_path, catalog):
 def test_robi_profile_piles_one_part_type_and_sweeps_over_the_bin(robi_catalog, tmp_path):
     import dataclasses
 
+    from cli.main import main
     from estimator.dataset import load_dataset
-    from service.cli import main
     from sim.scenes import PROFILES
 
     spec = PROFILES["robi"]

@@ -1,0 +1,118 @@
+"""What the command groups share: the help formatter, the daemon's settings from the command line,
+the Zenoh transport options and the catalog table."""
+
+from __future__ import annotations
+
+import argparse
+import textwrap
+
+from estimator.errors import PosefuseError
+
+# Outputs that nobody asked for by path go under runs/ of the current folder, never into the
+# project's own files: regenerating a committed file takes an explicit --out.
+RUNS = "runs"
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default; required options say so instead. Options
+    whose default is None (or flags, False) are left as they are: their help says what happens
+    when they are omitted. Descriptions keep their paragraphs (separated by a blank line)."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        return "\n\n".join(
+            textwrap.fill(
+                " ".join(p.split()), width, initial_indent=indent, subsequent_indent=indent
+            )
+            for p in text.split("\n\n")
+        )
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.required and action.option_strings:
+            return f"{text} (required)"
+        if action.default is None or action.default is False:
+            return text
+        if isinstance(action.default, bool) or action.default is argparse.SUPPRESS:
+            return text
+        return super()._get_help_string(action)
+
+
+def add_command(
+    subparsers, name: str, help: str, description: str | None = None
+) -> argparse.ArgumentParser:
+    """A sub-command with the project's help formatter; its description is ``help`` (and
+    ``description`` after it, when given)."""
+    text = help[:1].upper() + help[1:] + "."
+    if description:
+        text = f"{text}\n\n{description}"
+    return subparsers.add_parser(name, help=help, description=text, formatter_class=HelpFormatter)
+
+
+def _settings(args: argparse.Namespace):
+    """The daemon's settings: the options given on the command line over the environment
+    (POSEFUSE_*), the POSEFUSE_CONFIG file and the defaults."""
+    from pydantic import ValidationError
+
+    from service.settings import Settings
+
+    overrides = {}
+    for name in ("cell", "mode", "http_host", "http_port", "catalog", "model"):
+        value = getattr(args, name, None)
+        if value is not None:
+            overrides[name] = value
+    if getattr(args, "listen", None):
+        overrides["listen"] = args.listen
+    if getattr(args, "connect", None):
+        overrides["connect"] = args.connect
+    try:
+        return Settings(**overrides)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        field = ".".join(str(x) for x in first["loc"])
+        raise PosefuseError(f"setting {field}: {first['msg']}") from None
+
+
+def settings_default(env: str, fallback: str) -> str:
+    """The help text's tail of an option that overrides one of the daemon's settings."""
+    return f"default: ${env}, else the POSEFUSE_CONFIG file, else {fallback}"
+
+
+def _add_transport_args(p: argparse.ArgumentParser, listen_default: str | None = None) -> None:
+    """--cell, --mode, --listen and --connect; ``listen_default`` replaces the help's default of
+    --listen for commands that choose their own."""
+    p.add_argument(
+        "--cell",
+        help="key prefix of the cell: {cell}/@v1/... ("
+        + settings_default("POSEFUSE_CELL", "posefuse")
+        + ")",
+    )
+    p.add_argument(
+        "--mode",
+        choices=["peer", "client"],
+        help="zenoh mode (" + settings_default("POSEFUSE_MODE", "peer") + ")",
+    )
+    p.add_argument(
+        "--listen",
+        nargs="+",
+        metavar="ENDPOINT",
+        help="zenoh listen endpoints, e.g. tcp/127.0.0.1:7447 ("
+        + (listen_default or settings_default("POSEFUSE_LISTEN", "tcp/127.0.0.1:7447"))
+        + ")",
+    )
+    p.add_argument(
+        "--connect",
+        nargs="+",
+        metavar="ENDPOINT",
+        help="zenoh endpoints to connect to, e.g. tcp/router:7447 ("
+        + settings_default("POSEFUSE_CONNECT", "none")
+        + ")",
+    )
+
+
+def _catalog_table(catalog) -> str:
+    rows = ["| obj_id | name | diameter (mm) | symmetries |", "|---|---|---|---|"]
+    for obj_id, model in catalog.items():
+        diameter_mm = model.diameter * 1000
+        symmetries = model.describe_symmetries()
+        rows.append(f"| {obj_id} | {model.name} | {diameter_mm:.1f} | {symmetries} |")
+    return "\n".join(rows)

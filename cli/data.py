@@ -1,0 +1,195 @@
+"""Data commands: object catalogs, rendered BOP datasets, their scoring and their pictures.
+
+- ``posefuse catalog``: write a BOP object catalog
+- ``posefuse synth``: render a BOP multi-view bin-picking dataset
+- ``posefuse eval``: score a BOP results CSV
+- ``posefuse overlay``: draw the ground truth of one view over its image
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from cli.common import _catalog_table, add_command
+from estimator.errors import PosefuseError
+from service.resources import DEFAULT_CATALOG
+
+
+def _cmd_catalog(args: argparse.Namespace) -> int:
+    from estimator.objects import Catalog, load_mesh, make_model, write_catalog
+
+    if args.mesh:
+        models = []
+        for k, path in enumerate(args.mesh):
+            name = Path(path).stem
+            models.append(make_model(k + 1, name, load_mesh(path, units=args.units)))
+        catalog = Catalog(models)
+    else:
+        from sim.catalog import robi_like_catalog
+
+        catalog = robi_like_catalog()
+    write_catalog(Path(args.out), catalog)
+    print(f"wrote {len(catalog)} objects to {args.out}")
+    print(_catalog_table(catalog))
+    return 0
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from estimator.objects import load_catalog
+    from sim.scenes import INTRINSICS, PROFILES
+    from sim.synth import SynthConfig, generate_dataset
+
+    if args.intrinsics not in INTRINSICS:
+        raise PosefuseError(
+            f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}"
+        )
+    if args.scenes < 1 or args.views < 1:
+        raise PosefuseError("--scenes and --views must be at least 1")
+    profile = PROFILES[args.profile]
+    lo, hi = args.instances or profile.n_instances
+    if not 1 <= lo <= hi:
+        raise PosefuseError("--instances needs MIN MAX with 1 <= MIN <= MAX")
+    catalog = load_catalog(args.catalog)
+    obj_ids = tuple(args.obj_ids) if args.obj_ids else None
+    for obj_id in obj_ids or ():
+        catalog[obj_id]  # raises a CatalogError naming the catalog
+    config = SynthConfig(
+        n_scenes=args.scenes,
+        seed=args.seed,
+        split=args.split,
+        first_scene_id=args.first_scene,
+        camera=INTRINSICS[args.intrinsics],
+        scene=dataclasses.replace(profile, n_instances=(lo, hi), n_views=args.views),
+        profile=args.profile,
+        obj_ids=obj_ids,
+    )
+    start = time.perf_counter()
+    generate_dataset(catalog, args.out, config, show_progress=not args.quiet)
+    elapsed = time.perf_counter() - start
+    print(f"wrote {args.scenes} scenes x {args.views} views to {args.out} in {elapsed:.1f} s")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.evaluation import evaluate, read_results, read_targets
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    results = read_results(args.results)
+    targets = read_targets(args.targets) if args.targets else None
+    report = evaluate(
+        dataset,
+        results,
+        threshold=args.threshold,
+        min_visib=args.min_visib,
+        targets=targets,
+    )
+    print(report.to_markdown())
+    if args.json:
+        Path(args.json).write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _cmd_overlay(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from sim.overlay import write_gt_overlay
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    write_gt_overlay(dataset, args.scene, args.im, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = add_command(
+        subparsers,
+        "catalog",
+        "write a BOP object catalog (procedural parts or your meshes)",
+        "Without --mesh: the five procedural parts. With meshes: one object per file, named "
+        "after it, with its symmetries detected.",
+    )
+    p.add_argument("--out", required=True, help="output folder (models/ of a BOP dataset)")
+    p.add_argument(
+        "--mesh",
+        action="append",
+        metavar="FILE",
+        help="a mesh file (STL/PLY/OBJ); repeat for more (default: the procedural parts)",
+    )
+    p.add_argument("--units", default="mm", choices=["mm", "cm", "m"], help="units of --mesh files")
+    p.set_defaults(func=_cmd_catalog)
+
+    p = add_command(subparsers, "synth", "render a BOP multi-view bin-picking dataset")
+    p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
+    p.add_argument("--out", required=True, help="dataset folder to write")
+    p.add_argument("--scenes", type=int, default=2, help="bin scenes to render")
+    p.add_argument("--views", type=int, default=8, help="camera views per scene")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the scenes")
+    p.add_argument("--split", default="test", help="BOP split folder to write")
+    p.add_argument("--first-scene", type=int, default=0, help="id of the first scene")
+    p.add_argument(
+        "--profile",
+        default="mixed",
+        choices=["mixed", "robi"],
+        help="mixed: 5-15 parts of 1-3 types, cameras around the bin; robi: 20-40 parts of one "
+        "type piled densely, an eye-in-hand sweep over the bin",
+    )
+    p.add_argument(
+        "--instances",
+        type=int,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        help="parts per bin (default: the profile's, 5 15 for mixed, 20 40 for robi)",
+    )
+    p.add_argument(
+        "--intrinsics", default="realsense", help="camera: realsense, realsense-640 or ensenso"
+    )
+    p.add_argument(
+        "--obj-ids",
+        type=int,
+        nargs="+",
+        metavar="ID",
+        help="only these objects of the catalog (default: all of them)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_synth)
+
+    p = add_command(
+        subparsers,
+        "eval",
+        "score a BOP results CSV: ADD-sym, MSSD, AR_MSSD and precision per object",
+    )
+    p.add_argument("--dataset", required=True, help="the BOP dataset folder the results are of")
+    p.add_argument("--results", required=True, help="CSV: scene_id,im_id,obj_id,score,R,t,time")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument(
+        "--threshold", type=float, default=0.1, help="error threshold, fraction of the diameter"
+    )
+    p.add_argument(
+        "--min-visib",
+        type=float,
+        default=0.75,
+        help="score only instances with a larger visible fraction",
+    )
+    p.add_argument(
+        "--targets",
+        metavar="FILE",
+        help="JSON list of {scene_id, im_id}: score only these views (default: every view)",
+    )
+    p.add_argument(
+        "--json", metavar="FILE", help="also write the report as JSON here (default: do not)"
+    )
+    p.set_defaults(func=_cmd_eval)
+
+    p = add_command(subparsers, "overlay", "draw the ground truth of one view over its image")
+    p.add_argument("--dataset", required=True, help="BOP dataset folder")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument("--scene", type=int, default=0, help="scene id")
+    p.add_argument("--im", type=int, default=0, help="image id in the scene")
+    p.add_argument("--out", required=True, help="PNG file to write")
+    p.set_defaults(func=_cmd_overlay)

@@ -1,0 +1,391 @@
+"""Running the estimator offline: over BOP datasets, its template banks, the learned front end,
+and the quickstart that shows all of it on one small bin.
+
+- ``posefuse run-dataset``: the estimator over a BOP dataset, views one at a time, scored
+- ``posefuse templates``: build (or load) the LINE-2D template banks of a catalog
+- ``posefuse eval-frontend``: recall, precision and center accuracy of the learned front end
+- ``posefuse frontend-overlay``: a picture of the learned front end's output on one view
+- ``posefuse quickstart``: render a bin, run the estimator on it and score it
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cli.common import RUNS, add_command
+from estimator.errors import PosefuseError
+from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+
+# The oracle front end of run-dataset (and of the quickstart): true centers with this much
+# Gaussian noise (px), this share of the instances missed and this many false positives per
+# true detection.
+ORACLE_CENTER_SIGMA = 2.0
+ORACLE_DROP_RATE = 0.1
+ORACLE_FALSE_POSITIVE_RATE = 0.05
+
+DETECTION_LEGEND = (
+    "Pose accuracy (instances with visib_fract > 0.75) in the view after which the "
+    "estimates were taken: ADD-sym < 0.1 d (the headline; found instances in brackets), "
+    "MSSD < 0.1 d, AR_MSSD (mean recall over MSSD thresholds 0.05-0.5 d), precision "
+    "(found instances per estimate), and the lenient ADI < 0.1 d."
+)
+
+
+@dataclass
+class DatasetReport:
+    """What :func:`run_and_write` wrote, as text: the translation summary, and with the
+    rotation step the scores per checkpoint (number of views), their table and the fates."""
+
+    summary: str
+    reports: dict = field(default_factory=dict)
+    table: str = ""
+    fates: str = ""
+    fates_legend: str = ""
+
+
+def make_frontend(dataset, kind: str, oracle=None, model: str = DEFAULT_MODEL, seed: int = 0):
+    """The detections of a run: ``oracle`` (noisy ground truth, ``oracle`` an OracleConfig) or
+    ``network`` (the learned front end, labelled with the instance each lies on for scoring)."""
+    if kind == "network":
+        from estimator.frontend.network import NetworkFrontend
+        from estimator.run_dataset import LabelledNetworkFrontend
+
+        return LabelledNetworkFrontend(dataset, NetworkFrontend(model, dataset.catalog, seed=seed))
+    if kind == "oracle":
+        from estimator.frontend.oracle import OracleFrontend
+
+        return OracleFrontend(dataset, oracle)
+    raise PosefuseError(f"--frontend: {kind!r} is not known; use oracle or network")
+
+
+def run_and_write(
+    dataset,
+    frontend,
+    out: Path,
+    frontend_name: str,
+    scene_ids: tuple[int, ...] | None = None,
+    rotation: bool = True,
+    quiet: bool = False,
+) -> DatasetReport:
+    """Run the estimator over ``dataset`` (views one at a time, one estimator per scene, the
+    template banks built or loaded once) and write its tables into ``out``: translation errors,
+    with ``rotation`` also BOP results and targets per checkpoint, their scores and the fate of
+    every scored instance."""
+    from estimator.evaluation import checkpoint_markdown, evaluate, write_results, write_targets
+    from estimator.fates import fate_table
+    from estimator.run_dataset import (
+        CHECKPOINTS,
+        run_dataset,
+        summary_markdown,
+        write_fates,
+        write_rows,
+    )
+    from estimator.tracker import MultiViewEstimator
+
+    shared = MultiViewEstimator(dataset.catalog, show_progress=not quiet)
+    if rotation:  # build (or load) every class's templates once, with a progress bar
+        for obj_id in dataset.catalog:
+            shared.matcher(obj_id)
+
+    def factory():
+        return MultiViewEstimator(dataset.catalog, banks=shared.banks())
+
+    run = run_dataset(
+        dataset,
+        frontend,
+        scene_ids=scene_ids,
+        show_progress=not quiet,
+        rotation=rotation,
+        estimator_factory=factory,
+    )
+    write_rows(out / "translation_errors.csv", run.rows)
+    summary = summary_markdown(run, dataset.catalog)
+    (out / "translation_summary.md").write_text(
+        "Median translation error (and relative to the camera distance) after 2, 4 and 8 "
+        f"views.\n\n{summary}\n"
+    )
+    report = DatasetReport(summary)
+    if not rotation:
+        return report
+    for n in CHECKPOINTS:
+        if not run.targets[n]:
+            continue
+        write_results(out / f"results_{n}views.csv", run.results[n])
+        write_targets(out / f"targets_{n}views.json", run.targets[n])
+        report.reports[n] = evaluate(dataset, run.results[n], targets=run.targets[n])
+    report.table = checkpoint_markdown(report.reports)
+    (out / "detection_rate.md").write_text(f"{DETECTION_LEGEND}\n\n{report.table}\n")
+    (out / "detection_rate.json").write_text(
+        json.dumps({str(n): r.to_json() for n, r in report.reports.items()}, indent=1) + "\n"
+    )
+    write_fates(out / "fates.csv", run.fates)
+    report.fates = fate_table(
+        [f for f in run.fates if f.n_views >= 2], dataset.catalog, dataset.profile
+    )
+    report.fates_legend = (
+        "Where each scored instance ended (estimator/fates.py gives the rules, first that "
+        f"applies); profile {dataset.profile}, front end {frontend_name}."
+    )
+    (out / "fates.md").write_text(f"{report.fates_legend}\n\n{report.fates}\n")
+    return report
+
+
+def _cmd_run_dataset(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.frontend.oracle import OracleConfig
+
+    if args.frontend not in ("oracle", "network"):
+        raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
+    dataset = load_dataset(args.dataset, split=args.split)
+    rotation = not args.translation_only
+    try:
+        oracle = OracleConfig(
+            center_sigma_px=args.center_sigma,
+            drop_rate=args.drop_rate,
+            false_positive_rate=args.false_positive_rate,
+            with_masks=rotation,
+            seed=args.seed,
+        )
+    except ValueError as exc:
+        raise PosefuseError(f"oracle settings: {exc}") from None
+    scene_ids = tuple(args.scenes) if args.scenes else None
+    for scene_id in scene_ids or ():
+        dataset.scene(scene_id)  # a DatasetError naming the missing scene
+    frontend = make_frontend(dataset, args.frontend, oracle, args.model, args.seed)
+    out = Path(args.out)
+    report = run_and_write(
+        dataset, frontend, out, args.frontend, scene_ids, rotation=rotation, quiet=args.quiet
+    )
+    print(report.summary)
+    print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
+    if rotation:
+        print(f"\n{DETECTION_LEGEND}")
+        print(report.table)
+        print(f"\n{report.fates_legend}")
+        print(report.fates)
+        print(
+            "wrote results_*views.csv, targets_*views.json, detection_rate.md, "
+            f"detection_rate.json, fates.csv and fates.md to {out}"
+        )
+    return 0
+
+
+def _cmd_templates(args: argparse.Namespace) -> int:
+    from estimator.objects import load_catalog
+    from estimator.templates import build_template_bank
+
+    catalog = load_catalog(args.catalog)
+    rows = [
+        "| obj_id | name | templates | size (KiB) | build (s) |",
+        "|---|---|---|---|---|",
+    ]
+    for obj_id, model in catalog.items():
+        bank = build_template_bank(model, cache_dir=args.cache, show_progress=not args.quiet)
+        rows.append(
+            f"| {obj_id} | {model.name} | {len(bank)} | {bank.nbytes / 1024:.0f} | "
+            f"{bank.build_seconds:.1f} |"
+        )
+    print("\n".join(rows))
+    return 0
+
+
+def _cmd_eval_frontend(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.frontend.metrics import score_frontend
+    from estimator.frontend.network import NetworkFrontend
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    frontend = NetworkFrontend(args.model, dataset.catalog, threads=args.threads)
+    views = [v for v in dataset.views()][: args.max_views or None]
+
+    def detect(view):
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        return frontend.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+
+    score = score_frontend(dataset, detect, views, min_visib=args.min_visib)
+    print(f"Front end {args.model} on {args.dataset} (profile {dataset.profile}):\n")
+    print(score.to_markdown())
+    return 0
+
+
+def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
+    import cv2
+
+    from estimator.dataset import load_dataset
+    from estimator.frontend.network import NetworkFrontend
+    from sim.overlay import frontend_overlay
+
+    dataset = load_dataset(args.dataset, split=args.split)
+    frontend = NetworkFrontend(args.model, dataset.catalog)
+    scene = dataset.scene(args.scene)
+    view = scene.view(args.im)
+    image = scene.load_rgb(args.im)
+    raw = frontend.infer(image)
+    dets = frontend.detect(image, stamp_seed=args.scene * 100_000 + args.im)
+    truth = [view.camera.project(g.T_cam_obj[:3, 3]) for g in view.gts if g.visib_fract > 0.1]
+    picture = frontend_overlay(image, raw, dets, frontend.card, np.array(truth).reshape(-1, 2))
+    if args.crop:
+        x, y, w, h = args.crop
+        picture = picture[y : y + h, x : x + w]
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(args.out, picture)
+    print(f"wrote {args.out}: {len(dets)} detections")
+    return 0
+
+
+def _cmd_quickstart(args: argparse.Namespace) -> int:
+    from estimator.dataset import load_dataset
+    from estimator.evaluation import checkpoint_markdown
+    from estimator.frontend.oracle import OracleConfig
+    from estimator.objects import load_catalog
+    from sim.overlay import write_gt_overlay
+    from sim.scenes import SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    out = Path(args.out)
+    catalog = load_catalog(args.catalog)
+    print(f"1/4 rendering 1 bin scene x 8 views of {len(catalog)} parts into {out}")
+    generate_dataset(
+        catalog, out, SynthConfig(n_scenes=1, seed=args.seed, scene=SceneSpec(n_views=8))
+    )
+    dataset = load_dataset(out)
+    overlay = out / "overlay_000000_000000.png"
+    write_gt_overlay(dataset, 0, 0, overlay)
+    print(f"2/4 ground-truth overlay of the first view: {overlay}")
+    run_dir = out / "run"
+    oracle = OracleConfig(
+        center_sigma_px=ORACLE_CENTER_SIGMA,
+        drop_rate=ORACLE_DROP_RATE,
+        false_positive_rate=ORACLE_FALSE_POSITIVE_RATE,
+        seed=args.seed,
+    )
+    print(
+        f"3/4 running the estimator over the views one at a time into {run_dir}, on the oracle "
+        f"front end (true centers + {ORACLE_CENTER_SIGMA:g} px noise, "
+        f"{ORACLE_DROP_RATE:.0%} missed, {ORACLE_FALSE_POSITIVE_RATE:.0%} false positives)"
+    )
+    report = run_and_write(dataset, make_frontend(dataset, "oracle", oracle), run_dir, "oracle")
+    shown = {n: r for n, r in report.reports.items() if n in (4, 8)}
+    print(f"4/4 the estimates after 4 and 8 views against the ground truth.\n\n{DETECTION_LEGEND}")
+    print(checkpoint_markdown(shown))
+    print(f"(all tables, 2 views too and the fate of every part, in {run_dir})\n")
+    where = shlex.quote(str(out))
+    print(
+        f"next: posefuse run-dataset --dataset {where} --frontend network "
+        f"--out {shlex.quote(str(out / 'run_net'))}  (the learned front end)"
+    )
+    print("      posefuse demo  (the daemon on Zenoh, replaying the demo recording)")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = add_command(
+        subparsers,
+        "run-dataset",
+        "run the estimator over a BOP dataset, views one at a time, and score it",
+    )
+    p.add_argument("--dataset", required=True, help="BOP dataset folder")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument("--out", required=True, help="folder for the error tables")
+    p.add_argument(
+        "--frontend",
+        default="oracle",
+        help="oracle (noisy detections from the ground truth) or network (the learned model)",
+    )
+    p.add_argument("--model", default=DEFAULT_MODEL, help="ONNX model for --frontend network")
+    p.add_argument(
+        "--scenes",
+        type=int,
+        nargs="+",
+        metavar="ID",
+        help="only these scene ids (default: every scene)",
+    )
+    p.add_argument(
+        "--center-sigma",
+        type=float,
+        default=ORACLE_CENTER_SIGMA,
+        help="oracle center noise, px",
+    )
+    p.add_argument(
+        "--drop-rate",
+        type=float,
+        default=ORACLE_DROP_RATE,
+        help="oracle: share of the instances missed",
+    )
+    p.add_argument(
+        "--false-positive-rate",
+        type=float,
+        default=ORACLE_FALSE_POSITIVE_RATE,
+        help="oracle: false detections per true one",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the front end's noise")
+    p.add_argument("--translation-only", action="store_true", help="skip the rotation step")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run_dataset)
+
+    p = add_command(
+        subparsers,
+        "templates",
+        "build (or load from the cache) the LINE-2D templates of a catalog",
+    )
+    p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
+    p.add_argument(
+        "--cache",
+        metavar="DIR",
+        help="cache folder (default: $POSEFUSE_CACHE, else ~/.cache/posefuse)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_templates)
+
+    p = add_command(subparsers, "eval-frontend", "recall, precision and center accuracy of a model")
+    p.add_argument("--dataset", required=True, help="BOP dataset folder")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument("--model", default=DEFAULT_MODEL, help="ONNX model of the front end")
+    p.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    p.add_argument(
+        "--min-visib",
+        type=float,
+        default=0.75,
+        help="score only instances with a larger visible fraction",
+    )
+    p.add_argument("--max-views", type=int, default=0, help="score only the first N views (0: all)")
+    p.set_defaults(func=_cmd_eval_frontend)
+
+    p = add_command(subparsers, "frontend-overlay", "draw the learned front end's output on a view")
+    p.add_argument("--dataset", required=True, help="BOP dataset folder")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument("--model", default=DEFAULT_MODEL, help="ONNX model of the front end")
+    p.add_argument("--scene", type=int, default=0, help="scene id")
+    p.add_argument("--im", type=int, default=0, help="image id in the scene")
+    p.add_argument(
+        "--crop",
+        type=int,
+        nargs=4,
+        metavar=("X", "Y", "W", "H"),
+        help="keep only this rectangle of the picture, px (default: the whole view)",
+    )
+    p.add_argument("--out", required=True, help="image file to write (PNG)")
+    p.set_defaults(func=_cmd_frontend_overlay)
+
+    p = add_command(
+        subparsers,
+        "quickstart",
+        "render a small bin, run the estimator on it and score it",
+        "Renders 1 bin scene x 8 views, draws the ground truth of the first view, runs the "
+        "estimator over the views (oracle detections, as run-dataset) into OUT/run and prints "
+        "its ADD-sym and MSSD after 4 and 8 views.",
+    )
+    p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
+    p.add_argument(
+        "--out",
+        default=f"{RUNS}/quickstart",
+        help="folder for the dataset and the run, relative to the current folder",
+    )
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene and of the detections")
+    p.set_defaults(func=_cmd_quickstart)

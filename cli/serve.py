@@ -1,0 +1,212 @@
+"""The live cell: the daemon, a camera publishing a BOP scene, the current poses, the demo.
+
+- ``posefuse serve``: the estimator daemon on Zenoh with its HTTP API
+- ``posefuse publish``: a camera client publishing a BOP scene
+- ``posefuse objects``: the current poses of a running daemon
+- ``posefuse demo``: the demo recording replayed through an embedded daemon, scored
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+from cli.common import _add_transport_args, _settings, add_command, settings_default
+from estimator.errors import PosefuseError
+from service.resources import DEFAULT_RECORDING
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import threading
+
+    import uvicorn
+
+    from estimator.objects import load_catalog
+    from estimator.tracker import MultiViewEstimator
+    from service.api import create_app
+    from service.daemon import Daemon
+    from service.worker import EstimatorWorker, make_detector
+
+    settings = _settings(args)
+    catalog = load_catalog(settings.catalog)
+    detect = make_detector(settings, catalog)
+    estimator = MultiViewEstimator(catalog, show_progress=True)
+    for obj_id in catalog:  # templates before the first frame, not during it
+        estimator.matcher(obj_id)
+    daemon = Daemon(settings, EstimatorWorker(estimator, detect))
+    thread = threading.Thread(target=daemon.run, name="posefuse-daemon", daemon=True)
+    thread.start()
+    if not daemon.ready.wait(30):
+        raise PosefuseError("the Zenoh session did not open within 30 s")
+    print(
+        f"posefuse: cell {settings.cell!r}, zenoh {settings.mode} "
+        f"{' '.join(settings.listen + settings.connect)}; "
+        f"HTTP on http://{settings.http_host}:{settings.http_port} (/objects, /stats, /docs)",
+        flush=True,
+    )
+    try:
+        uvicorn.run(
+            create_app(daemon),
+            host=settings.http_host,
+            port=settings.http_port,
+            log_level="warning",
+        )
+    finally:
+        daemon.stop()
+        thread.join(timeout=10)
+    return 0
+
+
+def _cmd_publish(args: argparse.Namespace) -> int:
+    import zenoh
+    from tqdm import tqdm
+
+    from clients.camera import publish, scene_messages
+    from estimator.dataset import load_dataset
+    from service.settings import zenoh_config
+
+    settings = _settings(args)
+    if args.rate <= 0:
+        raise PosefuseError("--rate must be positive")
+    dataset = load_dataset(args.dataset, split=args.split)
+    dataset.scene(args.scene)  # a DatasetError naming a missing scene
+    messages = list(
+        scene_messages(
+            dataset,
+            args.scene,
+            settings.cell,
+            args.camera,
+            args.rate,
+            seed=args.seed,
+            max_views=args.views,
+        )
+    )
+    with zenoh.open(zenoh_config(settings)) as session:
+        time.sleep(args.warmup)  # let the transport connect before the first put
+        with tqdm(total=len(messages), desc="publish", unit="msg") as bar:
+            n = publish(session, messages, realtime=True, progress=lambda _k: bar.update(1))
+        time.sleep(0.5)
+    print(f"published {n} messages of scene {args.scene} on {settings.cell}/@v1/cam/{args.camera}")
+    return 0
+
+
+def _cmd_objects(args: argparse.Namespace) -> int:
+    from clients.query import objects_http, objects_zenoh, table
+
+    if args.zenoh:
+        import zenoh
+
+        from service.settings import zenoh_config
+
+        settings = _settings(args)
+        with zenoh.open(zenoh_config(settings)) as session:
+            time.sleep(args.warmup)
+            objects = objects_zenoh(session, settings.cell)
+    else:
+        try:
+            objects = objects_http(args.url)
+        except OSError as exc:
+            raise PosefuseError(f"{args.url}: {exc}") from None
+    print(json.dumps(objects, indent=2) if args.json else table(objects))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from service.demo import run_demo
+
+    settings = _settings(args)
+    if not args.listen:  # a free loopback port: the demo needs no network and no other service
+        import socket
+
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        settings = settings.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
+    run_demo(args.recording, settings, keep_serving=args.serve)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = add_command(
+        subparsers,
+        "serve",
+        "run the estimator daemon on Zenoh with its HTTP API",
+        "Every option overrides one of the daemon's settings (environment variables POSEFUSE_*, "
+        "then the JSON file named by POSEFUSE_CONFIG, then the defaults; docs/protocol.md).",
+    )
+    _add_transport_args(p)
+    p.add_argument(
+        "--http-host",
+        help="address of the HTTP API ("
+        + settings_default("POSEFUSE_HTTP_HOST", "127.0.0.1")
+        + ")",
+    )
+    p.add_argument(
+        "--http-port",
+        type=int,
+        help="port of the HTTP API (" + settings_default("POSEFUSE_HTTP_PORT", "8000") + ")",
+    )
+    p.add_argument(
+        "--catalog",
+        help="BOP catalog folder of the parts ("
+        + settings_default("POSEFUSE_CATALOG", "the shipped catalogs/robi_like")
+        + ")",
+    )
+    p.add_argument(
+        "--model",
+        help="ONNX model of the front end ("
+        + settings_default("POSEFUSE_MODEL", "the shipped models/robi_like.onnx")
+        + ")",
+    )
+    p.set_defaults(func=_cmd_serve)
+
+    p = add_command(
+        subparsers,
+        "publish",
+        "publish a BOP scene as a camera would (info, JPEG images, poses)",
+    )
+    _add_transport_args(p)
+    p.add_argument("--dataset", required=True, help="BOP dataset folder")
+    p.add_argument("--split", default="test", help="BOP split folder of the dataset")
+    p.add_argument("--scene", type=int, default=0, help="scene id")
+    p.add_argument("--views", type=int, default=0, help="only the first N views (0: all)")
+    p.add_argument("--rate", type=float, default=2.0, help="images per second")
+    p.add_argument("--camera", default="cam0", help="camera id in the keys")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pose timing jitter")
+    p.add_argument(
+        "--warmup", type=float, default=1.0, help="seconds to connect before the first message"
+    )
+    p.set_defaults(func=_cmd_publish)
+
+    p = add_command(subparsers, "objects", "the current poses of a running daemon")
+    _add_transport_args(p)
+    p.add_argument("--url", default="http://127.0.0.1:8000", help="the daemon's HTTP API")
+    p.add_argument(
+        "--zenoh", action="store_true", help="ask over Zenoh (a get on the state key) not HTTP"
+    )
+    p.add_argument("--json", action="store_true", help="print JSON instead of the table")
+    p.add_argument(
+        "--warmup", type=float, default=0.5, help="--zenoh: seconds to connect before asking"
+    )
+    p.set_defaults(func=_cmd_objects)
+
+    p = add_command(
+        subparsers,
+        "demo",
+        "replay the demo recording through the daemon and score it",
+        "Starts a Zenoh peer on loopback, the daemon and its HTTP API in this process, replays "
+        "the recording in lockstep and prints each scene's estimates with their errors against "
+        "the ground truth it holds.",
+    )
+    _add_transport_args(p, listen_default="default: a free port on 127.0.0.1")
+    p.add_argument("--recording", default=DEFAULT_RECORDING, help="a recording made by make-demo")
+    p.add_argument(
+        "--http-port",
+        type=int,
+        help="port of the HTTP API (" + settings_default("POSEFUSE_HTTP_PORT", "8000") + ")",
+    )
+    p.add_argument(
+        "--serve", type=float, default=0.0, help="keep the API up this many seconds afterwards"
+    )
+    p.set_defaults(func=_cmd_demo)
