@@ -128,8 +128,10 @@ def load_mesh(path: str | Path, units: str = "mm", check_size: bool = True) -> t
         diameter = mesh_diameter(mesh)
         if not PLAUSIBLE_DIAMETER_M[0] <= diameter <= PLAUSIBLE_DIAMETER_M[1]:
             guesses = [
-                u for u, f in UNITS_TO_METRES.items()
-                if PLAUSIBLE_DIAMETER_M[0] <= diameter / UNITS_TO_METRES[units] * f
+                u
+                for u, f in UNITS_TO_METRES.items()
+                if PLAUSIBLE_DIAMETER_M[0]
+                <= diameter / UNITS_TO_METRES[units] * f
                 <= PLAUSIBLE_DIAMETER_M[1]
             ]
             hint = f"; did you mean --units {' or '.join(guesses)}?" if guesses else ""

@@ -264,8 +264,9 @@ def detect_symmetries(
         if not any(abs(np.dot(cand.axis, a.axis)) > 0.99 for a in axes):
             axes.append(cand)
     alternatives = [
-        a for a in alternatives if not any(abs(np.dot(a.axis, b.axis)) > 0.99 and
-                                           a.order == b.order for b in axes)
+        a
+        for a in alternatives
+        if not any(abs(np.dot(a.axis, b.axis)) > 0.99 and a.order == b.order for b in axes)
     ]
 
     # The group as a whole: the closure of the accepted axes, every element scored. Products of
@@ -275,8 +276,11 @@ def detect_symmetries(
         continuous, discrete = _claimed_group(axes, center, diameter)
         elements = list(discrete)
         if continuous:  # a flip composed with steps about the continuous axis
-            elements += [continuous[0].transform(2 * np.pi * f) @ d
-                         for f in _CONTINUOUS_PROBES for d in discrete]
+            elements += [
+                continuous[0].transform(2 * np.pi * f) @ d
+                for f in _CONTINUOUS_PROBES
+                for d in discrete
+            ]
         residuals = [score_transform(T) for T in elements]
         group_residual = max(residuals, default=0.0)
         if (group_residual <= tol_frac and _orders_kept(axes, discrete)) or len(axes) <= 1:

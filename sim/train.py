@@ -50,6 +50,7 @@ class TrainConfig:
     seed: int = 0
     workers: int = 2
     robi_fraction: float = 0.5  # of the scenes rendered with the robi profile, the rest mixed
+    deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
 
 
 def _class_index(catalog: Catalog) -> dict[int, int]:
@@ -244,13 +245,17 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     class_w = torch.ones(n_classes + 1)
     class_w[0] = float(np.clip(fg / (1 - fg) * 4, 0.05, 1.0))  # background is most pixels
     ch, cw = config.crop
-    deadline = time.time() + config.minutes * 60
+    loop_start = time.time()
+    deadline = loop_start + config.minutes * 60
+    if config.deadline is not None:
+        deadline = min(deadline, config.deadline)
     it = 0
-    bar = tqdm(total=config.max_iterations, desc="train", unit="it")
+    # the budget is time: the bar counts seconds, so its ETA is the end of training
+    bar = tqdm(total=max(int(deadline - loop_start), 1), desc="train", unit="s")
     losses = []
     model.train()
     while it < config.max_iterations and time.time() < deadline:
-        frac = min((time.time() - (deadline - config.minutes * 60)) / (config.minutes * 60), 1)
+        frac = min((time.time() - loop_start) / max(deadline - loop_start, 1e-9), 1)
         for g in opt.param_groups:
             g["lr"] = config.lr * 0.5 * (1 + np.cos(np.pi * frac))
         idx = rng.integers(len(images), size=config.batch)
@@ -288,9 +293,9 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         opt.step()
         losses.append(float(loss.detach()))
         it += 1
-        bar.update(1)
         if it % 20 == 0:
-            bar.set_postfix(loss=f"{np.mean(losses[-20:]):.3f}")
+            bar.n = min(int(time.time() - loop_start), bar.total)
+            bar.set_postfix(it=it, loss=f"{np.mean(losses[-20:]):.3f}")
     bar.close()
     train_minutes = (time.time() - start) / 60 - render_minutes
     model.eval()

@@ -1,0 +1,361 @@
+"""From CAD meshes to a servable part set in one command (``posefuse onboard``).
+
+Stages, each timed and written to ``DIR/parts.json``:
+
+1. catalog: meshes read in their units (implausible sizes refused), symmetries detected as whole
+   groups or taken from the person's ``--symmetry NAME=SPEC``, a BOP catalog in ``DIR/catalog``
+   and a contact sheet per part in ``DIR/contact/NAME.png`` (flagged near-symmetries in red);
+2. templates: the LINE-2D banks, built in parallel into the template cache;
+3. front end: training scenes rendered and the network trained until the budget's deadline
+   (``DIR/model/parts.onnx`` and its card);
+4. validation: held-out renders of both profiles (seeds never used for training), the front
+   end's recall and precision, and ADD-sym after 4 and 8 views with the network's detections.
+
+The budget covers the whole command: after the first two stages the rendering of training data
+is sized from a pilot render so that it takes a third of what is left, and training ends early
+enough to leave the validation its measured share.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimator.errors import PosefuseError
+from estimator.objects import Catalog, load_mesh, make_model, mesh_diameter, write_catalog
+from estimator.symmetry import detect_symmetries, symmetry_from_spec
+
+MANIFEST = "parts.json"
+MANIFEST_VERSION = 1
+VALIDATION_SEED = 880_000  # held-out renders: disjoint from training (sim.train) and test seeds
+
+
+@dataclass(frozen=True)
+class OnboardConfig:
+    units: str = "mm"
+    minutes: float = 60.0  # the whole command's budget
+    symmetry: dict[str, str] = field(default_factory=dict)  # part name -> spec
+    views: int = 6  # per training scene
+    val_scenes: int = 4  # calibration renders of the training run
+    held_scenes: int = 2  # per profile, for the validation figures
+    held_views: int = 8
+    workers: int = 2
+    seed: int = 0
+    robi_fraction: float = 0.5
+
+
+class Stages:
+    """Prints one line per stage with the elapsed time and the budget's end."""
+
+    def __init__(self, budget_s: float, echo=print):
+        self.start = time.time()
+        self.budget_s = budget_s
+        self.seconds: dict[str, float] = {}
+        self._echo = echo
+        self._t = self.start
+
+    def begin(self, k: int, name: str, detail: str = "") -> None:
+        self._t = time.time()
+        elapsed = self._t - self.start
+        left = self.budget_s - elapsed
+        self._echo(
+            f"[{k}/4] {name}{': ' + detail if detail else ''}  "
+            f"(elapsed {elapsed / 60:.1f} min, {left / 60:.1f} min of the budget left)"
+        )
+
+    def end(self, name: str) -> float:
+        self.seconds[name] = round(time.time() - self._t, 1)
+        return self.seconds[name]
+
+    @property
+    def deadline(self) -> float:
+        return self.start + self.budget_s
+
+
+def read_parts(paths: list[str], config: OnboardConfig) -> tuple[Catalog, dict]:
+    """The catalog of the meshes and, per part, its symmetry report as JSON."""
+    names = [Path(p).stem for p in paths]
+    if len(set(names)) != len(names):
+        raise PosefuseError(f"onboard: two meshes share a name: {sorted(names)}")
+    unknown = sorted(set(config.symmetry) - set(names))
+    if unknown:
+        raise PosefuseError(f"--symmetry: no mesh named {unknown}; the parts are {names}")
+    models, reports = [], {}
+    for k, (path, name) in enumerate(zip(paths, names, strict=True)):
+        mesh = load_mesh(path, units=config.units)
+        diameter = mesh_diameter(mesh)
+        report = detect_symmetries(mesh, diameter)
+        if name in config.symmetry:
+            try:
+                disc, cont = symmetry_from_spec(config.symmetry[name], mesh, diameter, report)
+            except ValueError as exc:
+                raise PosefuseError(f"--symmetry {name}: {exc}") from None
+            decided = f"set by --symmetry {name}={config.symmetry[name]}"
+        else:
+            disc, cont = report.discrete, report.continuous
+            decided = "detected"
+        models.append(make_model(k + 1, name, mesh, disc, cont))
+        reports[name] = {
+            "report": report,
+            "decided": decided,
+            "json": {
+                "detected": report.describe(),
+                "decided": decided,
+                "axes": [
+                    {
+                        "axis": list(a.axis),
+                        "order": a.order,
+                        "residual": a.residual,
+                        "margin": report.margin(a),
+                    }
+                    for a in report.axes
+                ],
+                "alternatives": [
+                    {"axis": list(a.axis), "order": a.order, "residual": a.residual}
+                    for a in report.alternatives
+                ],
+                "flags": list(report.flags),
+            },
+        }
+    return Catalog(models), reports
+
+
+def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print) -> dict:
+    """Run every stage; returns the manifest written to ``out/parts.json``."""
+    from estimator.templates import build_template_banks
+    from sim.contact_sheet import write_contact_sheet
+
+    if not paths:
+        raise PosefuseError("onboard: give at least one mesh file")
+    if config.minutes <= 0:
+        raise PosefuseError(f"--minutes must be positive, got {config.minutes}")
+    out = Path(out)
+    stages = Stages(config.minutes * 60, echo)
+
+    stages.begin(1, "catalog", f"{len(paths)} mesh(es) in {config.units}")
+    catalog, reports = read_parts(paths, config)
+    write_catalog(out / "catalog", catalog)
+    for model in catalog.values():
+        info = reports[model.name]
+        sheet = write_contact_sheet(model, info["report"], out / "contact" / f"{model.name}.png")
+        echo(
+            f"  {model.name}: {model.diameter * 1000:.1f} mm, {model.describe_symmetries()} "
+            f"({info['decided']}); contact sheet {sheet}"
+        )
+        for flag in info["report"].flags:
+            echo(f"    check: {flag}")
+    stages.end("catalog")
+
+    stages.begin(2, "templates", "LINE-2D banks, one process per part")
+    build_template_banks([catalog[k] for k in catalog], workers=config.workers)
+    stages.end("templates")
+
+    stages.begin(3, "front end", "render training scenes, train until the deadline")
+    model_path = out / "model" / "parts.onnx"
+    card = _train(out / "catalog", model_path, catalog, config, stages)
+    stages.end("front end")
+
+    stages.begin(4, "validation", "held-out renders of both profiles, network front end")
+    validation = validate(out, catalog, model_path, config, echo)
+    stages.end("validation")
+
+    manifest = {
+        "version": MANIFEST_VERSION,
+        "catalog": "catalog",
+        "model": "model/parts.onnx",
+        "units_read": config.units,
+        "parts": [
+            {
+                "obj_id": k,
+                "name": m.name,
+                "diameter_mm": round(m.diameter * 1000, 2),
+                "symmetry": m.describe_symmetries(),
+                "symmetry_detection": reports[m.name]["json"],
+                "contact_sheet": f"contact/{m.name}.png",
+            }
+            for k, m in catalog.items()
+        ],
+        "training": card.get("training", {}),
+        "validation": validation,
+        "stage_seconds": stages.seconds,
+        "budget_minutes": config.minutes,
+        "total_minutes": round((time.time() - stages.start) / 60, 2),
+    }
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:
+    from sim.train import TRAIN_SEED_BASE, TrainConfig, profile_of, render_views, train
+
+    # A pilot scene tells how long a view takes to render here (both profiles alternate).
+    t0 = time.time()
+    render_views((str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, profile_of(1, 1.0)))
+    per_view = (time.time() - t0) / 2 / max(config.workers, 1)
+    left = stages.deadline - time.time()
+    # validation: its renders, the network on them and the tracker, measured as ~3 s a view
+    reserve = 2 * config.held_scenes * config.held_views * (per_view * config.workers + 3.0)
+    usable = left - reserve
+    if usable < 30:
+        raise PosefuseError(
+            f"--minutes {config.minutes}: {left / 60:.1f} min remain after the catalog and "
+            f"templates, not enough to train and validate (about {reserve / 60:.1f} min of "
+            "validation alone); raise --minutes"
+        )
+    n_views = max(int(usable / 3 / per_view), 2 * config.views)
+    n_scenes = max(n_views // config.views, 2)
+    train_config = TrainConfig(
+        n_scenes=n_scenes,
+        views_per_scene=config.views,
+        val_scenes=config.val_scenes,
+        minutes=usable / 60,
+        workers=config.workers,
+        seed=config.seed,
+        robi_fraction=config.robi_fraction,
+        deadline=stages.deadline - reserve,
+    )
+    return train(catalog_dir, model_path, train_config)
+
+
+def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) -> dict:
+    """Front-end recall/precision and ADD-sym at 4 and 8 views on held-out renders."""
+    from estimator.dataset import load_dataset
+    from estimator.evaluation import evaluate
+    from estimator.frontend.metrics import score_frontend
+    from estimator.frontend.network import NetworkFrontend
+    from estimator.run_dataset import LabelledNetworkFrontend, run_dataset
+    from estimator.tracker import MultiViewEstimator
+    from sim.scenes import PROFILES
+    from sim.synth import SynthConfig, generate_dataset
+
+    figures = {}
+    for k, profile in enumerate(("mixed", "robi")):
+        root = out / "validation" / profile
+        seed = VALIDATION_SEED + config.seed * 10 + k
+        generate_dataset(
+            catalog,
+            root,
+            SynthConfig(
+                n_scenes=config.held_scenes,
+                seed=seed,
+                scene=_with_views(PROFILES[profile], config.held_views),
+                profile=profile,
+            ),
+            show_progress=False,
+        )
+        dataset = load_dataset(root)
+        network = NetworkFrontend(model_path, dataset.catalog, seed=config.seed)
+
+        def detect(view, network=network, dataset=dataset):
+            image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+            return network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+
+        score = score_frontend(dataset, detect, list(dataset.views()))
+        shared = MultiViewEstimator(dataset.catalog)
+        shared.prepare_templates(workers=config.workers)
+        run = run_dataset(
+            dataset,
+            LabelledNetworkFrontend(dataset, network),
+            show_progress=False,
+            rotation=True,
+            estimator_factory=lambda d=dataset: MultiViewEstimator(d.catalog, banks=shared.banks()),
+        )
+        accuracy = {}
+        for n in (4, 8):
+            if run.targets.get(n):
+                report = evaluate(dataset, run.results[n], targets=run.targets[n])
+                total = report.total
+                accuracy[str(n)] = {
+                    "add_sym": total.rate(),
+                    "mssd": total.rate("mssd"),
+                    "ar_mssd": total.ar_mssd,
+                    "precision": total.precision(),
+                    "instances": total.n_instances,
+                }
+        figures[profile] = {
+            "dataset": f"validation/{profile}",
+            "seed": seed,
+            "scenes": config.held_scenes,
+            "views": config.held_views,
+            "frontend": {
+                "recall": score.recall,
+                "precision": score.precision,
+                "median_center_error_px": score.median_center_error_px,
+                "instances": score.n_instances,
+            },
+            "views_accuracy": accuracy,
+        }
+        acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
+        echo(
+            f"  {profile}: front end recall {score.recall:.3f}, precision {score.precision:.3f}; "
+            f"{acc}"
+        )
+    return figures
+
+
+def _with_views(spec, n_views: int):
+    import dataclasses
+
+    return dataclasses.replace(spec, n_views=n_views)
+
+
+@dataclass(frozen=True)
+class PartSet:
+    """A servable part set: the folder ``posefuse onboard`` wrote."""
+
+    root: Path
+    catalog: Path
+    model: Path
+    manifest: dict
+
+
+def load_part_set(root: str | Path) -> PartSet:
+    """Read ``root/parts.json``; raises PosefuseError naming what is missing."""
+    root = Path(root)
+    path = root / MANIFEST
+    if not path.is_file():
+        raise PosefuseError(f"{path}: missing; a part set is the folder `posefuse onboard` wrote")
+    try:
+        manifest = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise PosefuseError(f"{path}: not valid JSON: {exc}") from None
+    if not isinstance(manifest, dict) or manifest.get("version") != MANIFEST_VERSION:
+        raise PosefuseError(f"{path}: not a version-{MANIFEST_VERSION} part set manifest")
+    catalog, model = root / str(manifest.get("catalog")), root / str(manifest.get("model"))
+    for what, p in (("catalog", catalog), ("model", model)):
+        if not p.exists():
+            raise PosefuseError(f"{path}: its {what} {p} is missing")
+    return PartSet(root, catalog, model, manifest)
+
+
+def parts_table(manifest: dict) -> str:
+    """The manifest's parts and validation figures as Markdown."""
+    rows = ["| obj_id | name | diameter (mm) | symmetry | flags |", "|---|---|---|---|---|"]
+    for p in manifest["parts"]:
+        flags = len(p["symmetry_detection"]["flags"])
+        rows.append(
+            f"| {p['obj_id']} | {p['name']} | {p['diameter_mm']:.1f} | {p['symmetry']} | "
+            f"{flags or '-'} |"
+        )
+    rows += [
+        "",
+        "| profile | recall | precision | ADD-sym 4 views | ADD-sym 8 views |",
+        "|---|---|---|---|---|",
+    ]
+    for profile, v in manifest["validation"].items():
+        acc = v["views_accuracy"]
+        cells = [f"{100 * acc[n]['add_sym']:.1f}%" if n in acc else "-" for n in ("4", "8")]
+        rows.append(
+            f"| {profile} | {v['frontend']['recall']:.3f} | {v['frontend']['precision']:.3f} | "
+            f"{cells[0]} | {cells[1]} |"
+        )
+    return "\n".join(rows) + "\n" + _nan_note(manifest)
+
+
+def _nan_note(manifest: dict) -> str:
+    vals = [v["frontend"]["recall"] for v in manifest["validation"].values()]
+    return "" if all(np.isfinite(vals)) else "(nan: no visible instance to score)\n"
