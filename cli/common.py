@@ -56,6 +56,14 @@ def _settings(args: argparse.Namespace):
     from service.settings import Settings
 
     overrides = {}
+    parts = getattr(args, "parts", None)
+    if parts is not None:
+        from sim.onboard import load_part_set
+
+        if getattr(args, "catalog", None) or getattr(args, "model", None):
+            raise PosefuseError("--parts names the catalog and the model: drop --catalog/--model")
+        part_set = load_part_set(parts)
+        overrides.update(catalog=part_set.catalog, model=part_set.model)
     for name in ("cell", "mode", "http_host", "http_port", "catalog", "model"):
         value = getattr(args, name, None)
         if value is not None:
@@ -116,3 +124,13 @@ def _catalog_table(catalog) -> str:
         symmetries = model.describe_symmetries()
         rows.append(f"| {obj_id} | {model.name} | {diameter_mm:.1f} | {symmetries} |")
     return "\n".join(rows)
+
+
+def add_parts_arg(p: argparse.ArgumentParser) -> None:
+    """``--parts DIR``: a part set written by ``posefuse onboard`` (its catalog and model)."""
+    p.add_argument(
+        "--parts",
+        metavar="DIR",
+        help="a part set written by `posefuse onboard` (its catalog and model; instead of "
+        "--catalog and --model)",
+    )

@@ -9,16 +9,17 @@ function taking the parsed arguments and returning the exit status).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from importlib.metadata import entry_points
 
-from cli import data, record, run, serve, train
+from cli import data, onboard, record, run, serve, train
 from cli.common import HelpFormatter
 from estimator.errors import PosefuseError
 
 ENTRY_POINT_GROUP = "posefuse.commands"
 # The built-in groups, in the order of `posefuse --help`: append a module to add a group.
-BUILTIN_GROUPS = (data, run, train, serve, record)
+BUILTIN_GROUPS = (data, onboard, run, train, serve, record)
 
 
 def _register_plugins(sub) -> None:
@@ -56,6 +57,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if not sys.stderr.isatty():
+        # progress bars into a log: a line every 30 s, not every update (tqdm reads TQDM_*;
+        # worker processes inherit it)
+        os.environ.setdefault("TQDM_MININTERVAL", "30")
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)

@@ -12,7 +12,14 @@ import sys
 import time
 from pathlib import Path
 
-from cli.common import RUNS, _add_transport_args, _settings, add_command, settings_default
+from cli.common import (
+    RUNS,
+    _add_transport_args,
+    _settings,
+    add_command,
+    add_parts_arg,
+    settings_default,
+)
 from estimator.errors import PosefuseError
 from service.resources import DEFAULT_CATALOG
 
@@ -221,6 +228,7 @@ def register(subparsers) -> None:
         + settings_default("POSEFUSE_MODEL", "the shipped models/robi_like.onnx")
         + ")",
     )
+    add_parts_arg(p)
     p.set_defaults(func=_cmd_replay)
 
     p = add_command(

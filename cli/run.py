@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cli.common import RUNS, add_command
+from cli.common import RUNS, add_command, add_parts_arg
 from estimator.errors import PosefuseError
 from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
@@ -142,6 +142,13 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
 
     if args.frontend not in ("oracle", "network"):
         raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
+    if args.parts is not None:
+        from sim.onboard import load_part_set
+
+        if args.model is not None:
+            raise PosefuseError("--parts names the model: drop --model")
+        args.model = str(load_part_set(args.parts).model)
+    args.model = args.model or DEFAULT_MODEL
     dataset = load_dataset(args.dataset, split=args.split)
     rotation = not args.translation_only
     try:
@@ -298,7 +305,12 @@ def register(subparsers) -> None:
         default="oracle",
         help="oracle (noisy detections from the ground truth) or network (the learned model)",
     )
-    p.add_argument("--model", default=DEFAULT_MODEL, help="ONNX model for --frontend network")
+    p.add_argument(
+        "--model",
+        help="ONNX model for --frontend network (default: the part set's with --parts, else "
+        "the shipped models/robi_like.onnx)",
+    )
+    add_parts_arg(p)
     p.add_argument(
         "--scenes",
         type=int,

@@ -12,7 +12,13 @@ import argparse
 import json
 import time
 
-from cli.common import _add_transport_args, _settings, add_command, settings_default
+from cli.common import (
+    _add_transport_args,
+    _settings,
+    add_command,
+    add_parts_arg,
+    settings_default,
+)
 from estimator.errors import PosefuseError
 from service.resources import DEFAULT_RECORDING
 
@@ -116,6 +122,14 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from service.demo import run_demo
 
     settings = _settings(args)
+    recording = args.recording
+    if args.parts is not None and recording is None:
+        from pathlib import Path
+
+        recording = Path(args.parts) / "demo.mcap"
+        if not recording.is_file():
+            raise PosefuseError(f"{recording}: missing; `posefuse onboard` writes it")
+    recording = recording or DEFAULT_RECORDING
     if not args.listen:  # a free loopback port: the demo needs no network and no other service
         import socket
 
@@ -123,7 +137,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         settings = settings.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
-    run_demo(args.recording, settings, keep_serving=args.serve)
+    run_demo(recording, settings, keep_serving=args.serve)
     return 0
 
 
@@ -136,6 +150,7 @@ def register(subparsers) -> None:
         "then the JSON file named by POSEFUSE_CONFIG, then the defaults; docs/protocol.md).",
     )
     _add_transport_args(p)
+    add_parts_arg(p)
     p.add_argument(
         "--http-host",
         help="address of the HTTP API ("
@@ -200,7 +215,12 @@ def register(subparsers) -> None:
         "the ground truth it holds.",
     )
     _add_transport_args(p, listen_default="default: a free port on 127.0.0.1")
-    p.add_argument("--recording", default=DEFAULT_RECORDING, help="a recording made by make-demo")
+    p.add_argument(
+        "--recording",
+        help="a recording made by make-demo (default: DIR/demo.mcap with --parts, else the "
+        "shipped recordings/demo.mcap)",
+    )
+    add_parts_arg(p)
     p.add_argument(
         "--http-port",
         type=int,

@@ -1,0 +1,112 @@
+"""Your own parts.
+
+- ``posefuse onboard MESH... --out DIR``: CAD meshes to a servable part set (``DIR/parts.json``)
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cli.common import add_command
+from estimator.errors import PosefuseError
+
+
+def _parse_symmetry(specs: list[str] | None) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for spec in specs or ():
+        name, sep, value = spec.partition("=")
+        if not sep or not name or not value:
+            raise PosefuseError(
+                f"--symmetry {spec!r}: use NAME=SPEC, e.g. gear=continuous, gear=28:z, bolt=none"
+            )
+        out[name] = value
+    return out
+
+
+def _cmd_onboard(args: argparse.Namespace) -> int:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise PosefuseError(
+            'onboard trains the front end and needs torch: pip install -e ".[train]" '
+            "(a CPU build, torch==2.13.0)"
+        ) from None
+    from sim.onboard import OnboardConfig, onboard, parts_table
+
+    config = OnboardConfig(
+        units=args.units,
+        minutes=args.minutes,
+        symmetry=_parse_symmetry(args.symmetry),
+        views=args.views,
+        held_scenes=args.held_scenes,
+        held_views=args.held_views,
+        workers=args.workers,
+        seed=args.seed,
+    )
+    manifest = onboard(args.mesh, args.out, config)
+    _write_demo(Path(args.out))
+    print()
+    print(parts_table(manifest))
+    print(
+        f"stages (s): {manifest['stage_seconds']}; {manifest['total_minutes']} min of a "
+        f"{manifest['budget_minutes']:g} min budget"
+    )
+    print(f"wrote {args.out}/parts.json; look at {args.out}/contact/*.png to confirm symmetries")
+    print(f"next: posefuse demo --parts {args.out}   (its held-out mixed bins, scored)")
+    print(f"      posefuse serve --parts {args.out}")
+    return 0
+
+
+def _write_demo(out: Path) -> None:
+    """DIR/demo.mcap: the held-out mixed bins as a camera publishes them, for ``demo --parts``."""
+    from clients.demo import make_recording
+    from estimator.dataset import load_dataset
+
+    dataset = load_dataset(out / "validation" / "mixed")
+    make_recording(dataset, dataset.scene_ids, out / "demo.mcap", catalog=dataset.catalog)
+
+
+def register(subparsers) -> None:
+    p = add_command(
+        subparsers,
+        "onboard",
+        "turn CAD meshes into a part set the daemon serves",
+        "Reads the meshes, detects each part's symmetries (a contact sheet per part in "
+        "DIR/contact/ shows the axes; near-symmetries are flagged for you to decide with "
+        "--symmetry), builds the LINE-2D templates, renders training scenes and trains the "
+        "front end until the budget's deadline, then measures the front end and ADD-sym on "
+        "held-out renders of both scene profiles. `posefuse serve --parts DIR` (and demo, "
+        "run-dataset, replay) take the result. Needs the train extra.",
+    )
+    p.add_argument(
+        "mesh", nargs="+", help="mesh files (STL, PLY or OBJ); a part's name is its stem"
+    )
+    p.add_argument("--out", required=True, help="the part set folder to write")
+    p.add_argument(
+        "--units",
+        default="mm",
+        choices=["mm", "cm", "m"],
+        help="units of the mesh files; a part outside 5 mm .. 2 m is refused as a unit mistake",
+    )
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=60.0,
+        help="budget of the whole command; training gets what the other stages leave",
+    )
+    p.add_argument(
+        "--symmetry",
+        action="append",
+        metavar="NAME=SPEC",
+        help="override a part's detected symmetry: none, continuous[:AXIS] or N[:AXIS] "
+        "(AXIS x, y, z or main); repeat per part (default: detected)",
+    )
+    p.add_argument("--views", type=int, default=6, help="views per training scene")
+    p.add_argument(
+        "--held-scenes", type=int, default=2, help="held-out validation scenes per profile"
+    )
+    p.add_argument("--held-views", type=int, default=8, help="views per validation scene")
+    p.add_argument("--workers", type=int, default=2, help="processes for rendering and templates")
+    p.add_argument("--seed", type=int, default=0, help="seed of training and validation")
+    p.set_defaults(func=_cmd_onboard)
