@@ -134,3 +134,21 @@ def add_parts_arg(p: argparse.ArgumentParser) -> None:
         help="a part set written by `posefuse onboard` (its catalog and model; instead of "
         "--catalog and --model)",
     )
+
+
+def claim_http_port(settings):
+    """The settings with a usable HTTP port, checked before anything is announced: port 0 picks
+    a free one; a port in use is one clear error naming it."""
+    import socket
+
+    with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((settings.http_host, settings.http_port))
+        except OSError as exc:
+            raise PosefuseError(
+                f"HTTP port {settings.http_host}:{settings.http_port} is not free ({exc.strerror});"
+                " choose another with --http-port, or --http-port 0 for any free one"
+            ) from None
+        port = s.getsockname()[1]
+    return settings.model_copy(update={"http_port": port})

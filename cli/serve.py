@@ -17,6 +17,7 @@ from cli.common import (
     _settings,
     add_command,
     add_parts_arg,
+    claim_http_port,
     settings_default,
 )
 from estimator.errors import PosefuseError
@@ -34,7 +35,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from service.daemon import Daemon
     from service.worker import EstimatorWorker, make_detector
 
-    settings = _settings(args)
+    settings = claim_http_port(_settings(args))
     catalog = load_catalog(settings.catalog)
     detect = make_detector(settings, catalog)
     estimator = MultiViewEstimator(catalog, show_progress=True)
@@ -130,6 +131,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         if not recording.is_file():
             raise PosefuseError(f"{recording}: missing; `posefuse onboard` writes it")
     recording = recording or DEFAULT_RECORDING
+    settings = claim_http_port(settings)
     if not args.listen:  # a free loopback port: the demo needs no network and no other service
         import socket
 
@@ -160,7 +162,9 @@ def register(subparsers) -> None:
     p.add_argument(
         "--http-port",
         type=int,
-        help="port of the HTTP API (" + settings_default("POSEFUSE_HTTP_PORT", "8000") + ")",
+        help="port of the HTTP API, 0 for any free one ("
+        + settings_default("POSEFUSE_HTTP_PORT", "8000")
+        + ")",
     )
     p.add_argument(
         "--catalog",
@@ -224,7 +228,9 @@ def register(subparsers) -> None:
     p.add_argument(
         "--http-port",
         type=int,
-        help="port of the HTTP API (" + settings_default("POSEFUSE_HTTP_PORT", "8000") + ")",
+        help="port of the HTTP API, 0 for any free one ("
+        + settings_default("POSEFUSE_HTTP_PORT", "8000")
+        + ")",
     )
     p.add_argument(
         "--serve", type=float, default=0.0, help="keep the API up this many seconds afterwards"

@@ -127,14 +127,12 @@ def load_mesh(path: str | Path, units: str = "mm", check_size: bool = True) -> t
     if check_size:
         diameter = mesh_diameter(mesh)
         if not PLAUSIBLE_DIAMETER_M[0] <= diameter <= PLAUSIBLE_DIAMETER_M[1]:
-            guesses = [
-                u
-                for u, f in UNITS_TO_METRES.items()
-                if PLAUSIBLE_DIAMETER_M[0]
-                <= diameter / UNITS_TO_METRES[units] * f
-                <= PLAUSIBLE_DIAMETER_M[1]
-            ]
-            hint = f"; did you mean --units {' or '.join(guesses)}?" if guesses else ""
+            # the units that make it most like a typical part (10 cm, in log scale)
+            sizes = {u: diameter / UNITS_TO_METRES[units] * f for u, f in UNITS_TO_METRES.items()}
+            best = min(sizes, key=lambda u: abs(np.log(sizes[u] / 0.1)))
+            hint = (
+                f"; did you mean --units {best} ({_length(sizes[best])})?" if best != units else ""
+            )
             raise MeshError(
                 path,
                 f"diameter {_length(diameter)} read in {units} is implausible for a part "

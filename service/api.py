@@ -73,13 +73,39 @@ class ResetResponse(BaseModel):
     removed: int
 
 
+def _serve_docs_locally(app: FastAPI) -> None:
+    """``/docs``: Swagger UI from the ``swagger-ui-bundle`` package, not from a CDN."""
+    import swagger_ui_bundle
+    from fastapi.openapi.docs import get_swagger_ui_html
+    from fastapi.staticfiles import StaticFiles
+
+    app.mount(
+        "/docs-assets",
+        StaticFiles(directory=swagger_ui_bundle.swagger_ui_path),
+        name="docs-assets",
+    )
+
+    @app.get("/docs", include_in_schema=False)
+    def docs():
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url,
+            title="posefuse API",
+            swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+            swagger_css_url="/docs-assets/swagger-ui.css",
+            swagger_favicon_url="/docs-assets/favicon-32x32.png",
+        )
+
+
 def create_app(daemon) -> FastAPI:
     """The API of one daemon (anything with worker, stats_dict, reset, subscribe, ready)."""
     app = FastAPI(
         title="posefuse",
         description="Multi-view 6D poses of textureless parts: current estimates, reset, stats.",
         version="1",
+        docs_url=None,  # served below from local assets: a cell is often offline
+        redoc_url=None,
     )
+    _serve_docs_locally(app)
 
     @app.get("/healthz", summary="The process is alive")
     def healthz() -> dict:

@@ -96,13 +96,20 @@ def run_demo(
     from service.worker import EstimatorWorker, make_detector
 
     catalog = load_catalog(settings.catalog)
-    estimator = MultiViewEstimator(catalog, show_progress=show_progress)
-    for obj_id in catalog:
-        estimator.matcher(obj_id)
+    estimator = MultiViewEstimator(catalog)
+    start = time.perf_counter()
+    built = []
+    estimator.prepare_templates(progress=lambda name, seconds, cached: built.append(not cached))
+    print(
+        f"[1/3] templates of {len(catalog)} parts: {sum(built)} built, "
+        f"{len(built) - sum(built)} from the cache, {time.perf_counter() - start:.1f} s",
+        flush=True,
+    )
     daemon = Daemon(settings, EstimatorWorker(estimator, make_detector(settings, catalog)))
     daemon_thread = threading.Thread(target=daemon.run, daemon=True)
     daemon_thread.start()
-    daemon.ready.wait(30)
+    if not daemon.ready.wait(30):
+        raise RuntimeError("the daemon's Zenoh session did not open within 30 s")
     server = uvicorn.Server(
         uvicorn.Config(
             create_app(daemon),
@@ -112,6 +119,12 @@ def run_demo(
         )
     )
     threading.Thread(target=server.run, daemon=True).start()
+    url = f"http://{settings.http_host}:{settings.http_port}"
+    print(
+        f"[2/3] daemon of cell {settings.cell!r}: zenoh {settings.mode} listening on "
+        f"{' '.join(settings.listen)}; HTTP {url}",
+        flush=True,
+    )
     keys = Keys(settings.cell)
     messages = list(read_messages(recording))
     truth: dict[int, list] = {}
@@ -125,6 +138,11 @@ def run_demo(
 
     client_conf = zenoh_config(
         settings.model_copy(update={"listen": [], "mode": "peer", "connect": settings.listen})
+    )
+    print(
+        f"[3/3] replaying {n_images} frames of {Path(recording).name} through Zenoh, each "
+        "processed before the next",
+        flush=True,
     )
     with zenoh.open(client_conf) as session:
         time.sleep(0.5)
@@ -202,14 +220,16 @@ def run_demo(
         f"({correct_mssd} within MSSD 0.1 d); {n_parts} parts were in the bins; "
         f"stats: {daemon.stats_dict()['frames_processed']} frames processed"
     )
-    url = f"http://{settings.http_host}:{settings.http_port}"
     if keep_serving:
         print(
             f"the API answers at {url}/objects, {url}/stats and {url}/docs for {keep_serving:g} s"
         )
         time.sleep(keep_serving)
     else:
-        print(f"(run `posefuse demo --serve 600` to keep the daemon and its API at {url})")
+        print(
+            f"(run `posefuse demo --serve 600` to keep the daemon and its API up; `posefuse "
+            f"objects --zenoh --connect {settings.listen[0]}` then asks it over Zenoh)"
+        )
     server.should_exit = True
     daemon.stop()
     daemon_thread.join(timeout=10)

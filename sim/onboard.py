@@ -76,7 +76,7 @@ class Stages:
         return self.start + self.budget_s
 
 
-def read_parts(paths: list[str], config: OnboardConfig) -> tuple[Catalog, dict]:
+def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Catalog, dict]:
     """The catalog of the meshes and, per part, its symmetry report as JSON."""
     names = [Path(p).stem for p in paths]
     if len(set(names)) != len(names):
@@ -87,6 +87,13 @@ def read_parts(paths: list[str], config: OnboardConfig) -> tuple[Catalog, dict]:
     models, reports = [], {}
     for k, (path, name) in enumerate(zip(paths, names, strict=True)):
         mesh = load_mesh(path, units=config.units)
+        if not mesh.is_watertight:
+            # CAD exports often are: rendering, symmetry detection and the pose errors work on
+            # the surface alone, so the mesh is used as it is
+            echo(
+                f"  note: {path} is not watertight ({len(mesh.faces)} triangles with open "
+                "edges); accepted, as only its surface is used"
+            )
         diameter = mesh_diameter(mesh)
         report = detect_symmetries(mesh, diameter)
         if name in config.symmetry:
@@ -137,7 +144,7 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
     stages = Stages(config.minutes * 60, echo)
 
     stages.begin(1, "catalog", f"{len(paths)} mesh(es) in {config.units}")
-    catalog, reports = read_parts(paths, config)
+    catalog, reports = read_parts(paths, config, echo)
     write_catalog(out / "catalog", catalog)
     for model in catalog.values():
         info = reports[model.name]
@@ -262,7 +269,9 @@ def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) 
             LabelledNetworkFrontend(dataset, network),
             show_progress=False,
             rotation=True,
-            estimator_factory=lambda d=dataset: MultiViewEstimator(d.catalog, banks=shared.banks()),
+            estimator_factory=lambda d=dataset, s=shared: MultiViewEstimator(
+                d.catalog, banks=s.banks()
+            ),
         )
         accuracy = {}
         for n in (4, 8):

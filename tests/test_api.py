@@ -74,3 +74,14 @@ def test_openapi_has_examples(daemon):
     spec = TestClient(create_app(daemon)).get("/openapi.json").json()
     assert "/objects/{object_id}" in spec["paths"]
     assert "examples" in json.dumps(spec["components"]["schemas"]["ObjectEstimateModel"])
+
+
+def test_docs_page_loads_its_assets_locally_not_from_a_cdn(daemon):
+    client = TestClient(create_app(daemon))
+    page = client.get("/docs")
+    assert page.status_code == 200
+    assert "cdn" not in page.text.lower()
+    for asset in ("/docs-assets/swagger-ui-bundle.js", "/docs-assets/swagger-ui.css"):
+        assert asset in page.text
+        got = client.get(asset)
+        assert got.status_code == 200 and len(got.content) > 1000
