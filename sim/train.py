@@ -294,8 +294,10 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         losses.append(float(loss.detach()))
         it += 1
         if it % 20 == 0:
-            bar.n = min(int(time.time() - loop_start), bar.total)
-            bar.set_postfix(it=it, loss=f"{np.mean(losses[-20:]):.3f}")
+            bar.set_postfix(it=it, loss=f"{np.mean(losses[-20:]):.3f}", refresh=False)
+            bar.update(
+                min(int(time.time() - loop_start), bar.total) - bar.n
+            )  # respects mininterval
     bar.close()
     train_minutes = (time.time() - start) / 60 - render_minutes
     model.eval()
