@@ -206,3 +206,26 @@ def test_quickstart_runs_the_estimator_and_says_what_next(tmp_path):
     assert any(line.startswith("next:") for line in stdout.splitlines())
     assert (out / "run" / "detection_rate.md").is_file()
     assert (out / "overlay_000000_000000.png").is_file()
+
+
+@pytest.mark.parametrize("command", ["serve", "demo"])
+def test_a_busy_http_port_is_refused_before_anything_starts(command, capsys):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        code = main([command, "--http-port", str(port)])
+    err = capsys.readouterr()
+    assert code == 2
+    assert f"127.0.0.1:{port} is not free" in err.err and "--http-port 0" in err.err
+    assert "HTTP on" not in err.out and "[1/3]" not in err.out  # nothing announced
+
+
+def test_http_port_zero_picks_a_free_port():
+    from cli.common import claim_http_port
+    from service.settings import Settings
+
+    settings = claim_http_port(Settings(http_port=0))
+    assert settings.http_port > 0
