@@ -7,7 +7,6 @@ worker function.
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -17,6 +16,7 @@ import urllib.request
 import msgpack
 import numpy as np
 import pytest
+from loopback import free_port, get_json
 
 from clients.camera import scene_messages
 from estimator.dataset import load_dataset
@@ -26,17 +26,6 @@ from service.resources import DEFAULT_MODEL
 from service.worker import EstimatorWorker
 
 N_VIEWS = 4
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _get(url, timeout=5.0):
-    with urllib.request.urlopen(url, timeout=timeout) as r:
-        return json.loads(r.read())
 
 
 def _post(url, body):
@@ -77,7 +66,7 @@ def _offline(dataset, messages):
 def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_path):
     import zenoh
 
-    zport, hport = _free_port(), _free_port()
+    zport, hport = free_port(), free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     daemon = subprocess.Popen(
         [
@@ -102,7 +91,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
         deadline = time.time() + 180
         while True:
             try:
-                if _get(f"{base}/readyz", 1)["status"] == "ready":
+                if get_json(f"{base}/readyz", 1)["status"] == "ready":
                     break
             except OSError:
                 pass
@@ -137,7 +126,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
                     "--connect",
                     f"tcp/127.0.0.1:{zport}",
                     "--listen",
-                    f"tcp/127.0.0.1:{_free_port()}",
+                    f"tcp/127.0.0.1:{free_port()}",
                 ],
                 capture_output=True,
                 text=True,
@@ -146,13 +135,13 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
             )
             assert publisher.returncode == 0, publisher.stderr
             deadline = time.time() + 60
-            while _get(f"{base}/stats")["frames_processed"] < N_VIEWS:
-                assert time.time() < deadline, _get(f"{base}/stats")
+            while get_json(f"{base}/stats")["frames_processed"] < N_VIEWS:
+                assert time.time() < deadline, get_json(f"{base}/stats")
                 time.sleep(0.5)
             time.sleep(0.5)
-            stats = _get(f"{base}/stats")
+            stats = get_json(f"{base}/stats")
             assert stats["frames_received"] == N_VIEWS and stats["decode_errors"] == {}
-            objects = {o["object_id"]: o for o in _get(f"{base}/objects")}
+            objects = {o["object_id"]: o for o in get_json(f"{base}/objects")}
             assert objects, "no objects estimated"
             # the last update received over Zenoh for each object is its current estimate
             last = {u["object_id"]: u for u in updates}
@@ -191,9 +180,9 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
             assert msgpack.unpackb(replies[0].ok.payload.to_bytes())["removed"] == 1
             listener.join(timeout=20)
             assert events and "event: reset" in events[0] and first in events[0]
-            assert first not in {o["object_id"] for o in _get(f"{base}/objects")}
+            assert first not in {o["object_id"] for o in get_json(f"{base}/objects")}
             assert _post(f"{base}/reset", {})["removed"] == len(objects) - 1
-            assert _get(f"{base}/objects") == []
+            assert get_json(f"{base}/objects") == []
             sub.undeclare()
     finally:
         daemon.terminate()

@@ -4,14 +4,13 @@ scene."""
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
+from loopback import free_port, get_json
 
 from cli.main import main
 
@@ -100,17 +99,6 @@ def test_symmetry_overrides_name_known_parts(tmp_path, capsys):
     assert code == 2 and "no mesh named ['bolt']" in text
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _get(url, timeout=5.0):
-    with urllib.request.urlopen(url, timeout=timeout) as r:
-        return json.loads(r.read())
-
-
 def test_onboard_then_serve_the_part_set(tmp_path, capsys):
     """A tiny budget (a few minutes): every stage runs, the manifest is complete, and a daemon
     serving the part set estimates the parts of a published validation scene."""
@@ -141,7 +129,7 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
     assert (out / "contact" / "screw.png").stat().st_size > 10_000
     assert (out / "demo.mcap").is_file() and "next: posefuse demo --parts" in text
 
-    zport, hport = _free_port(), _free_port()
+    zport, hport = free_port(), free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     serve = [sys.executable, "-m", "cli", "serve", "--parts", str(out), "--cell", "onb"]
     serve += ["--listen", f"tcp/127.0.0.1:{zport}", "--http-port", str(hport)]
@@ -153,7 +141,7 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
         deadline = time.time() + 120
         while True:
             try:
-                if _get(f"{base}/readyz", 1)["status"] == "ready":
+                if get_json(f"{base}/readyz", 1)["status"] == "ready":
                     break
             except OSError:
                 pass
@@ -163,17 +151,17 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
         publish = [sys.executable, "-m", "cli", "publish", "--dataset"]
         publish += [str(out / "validation" / "mixed"), "--scene", "0", "--rate", "4"]
         publish += ["--cell", "onb", "--connect", f"tcp/127.0.0.1:{zport}"]
-        publish += ["--listen", f"tcp/127.0.0.1:{_free_port()}"]
+        publish += ["--listen", f"tcp/127.0.0.1:{free_port()}"]
         done = subprocess.run(publish, capture_output=True, text=True, timeout=120, env=env)
         assert done.returncode == 0, done.stderr
         deadline = time.time() + 60
-        while _get(f"{base}/stats")["frames_processed"] < 4:
-            assert time.time() < deadline, _get(f"{base}/stats")
+        while get_json(f"{base}/stats")["frames_processed"] < 4:
+            assert time.time() < deadline, get_json(f"{base}/stats")
             time.sleep(0.5)
-        objects = _get(f"{base}/objects")
+        objects = get_json(f"{base}/objects")
         # the network of a 2.5-minute budget finds little; what is checked is that the part set
         # is served end to end: its class in the daemon's catalog, frames processed
-        classes = _get(f"{base}/stats").get("classes") or {}
+        classes = get_json(f"{base}/stats").get("classes") or {}
         assert isinstance(objects, list)
         assert all(o["class_name"] == "screw" for o in objects)
         assert classes == {} or "screw" in json.dumps(classes)
