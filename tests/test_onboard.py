@@ -22,15 +22,15 @@ SHARED = Path(
 
 
 def _one_mesh(tmp_path) -> Path:
-    """The real screw of ../shared/objects when present, else a procedural part exported as an
-    STL in millimetres (the pipeline is the same)."""
-    real = SHARED / "screw.stl"
+    """The real bracket of ../shared/objects when present, else the procedural zigzag exported
+    as an STL in millimetres (the pipeline is the same)."""
+    real = SHARED / "bracket.stl"
     if real.is_file():
         return real
     from sim.parts import build_part
 
-    path = tmp_path / "screw.stl"
-    build_part("chrome_screw").export(path)
+    path = tmp_path / "bracket.stl"
+    build_part("zigzag").export(path)
     return path
 
 
@@ -100,7 +100,7 @@ def test_symmetry_overrides_name_known_parts(tmp_path, capsys):
 
 
 def test_onboard_then_serve_the_part_set(tmp_path, capsys):
-    """A tiny budget (a few minutes): every stage runs, the manifest is complete, and a daemon
+    """A tiny budget (4 minutes): every stage runs, the manifest is complete, and a daemon
     serving the part set estimates the parts of a published validation scene."""
     out = tmp_path / "parts"
     code, text = _run(
@@ -110,7 +110,7 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
             "--out",
             str(out),
             "--minutes",
-            "2.5",
+            "4",
             "--views",
             "2",
             "--held-scenes",
@@ -122,11 +122,11 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
     )
     assert code == 0, text
     manifest = json.loads((out / "parts.json").read_text())
-    assert [p["name"] for p in manifest["parts"]] == ["screw"]
+    assert [p["name"] for p in manifest["parts"]] == ["bracket"]
     assert set(manifest["stage_seconds"]) == {"catalog", "templates", "front end", "validation"}
     assert set(manifest["validation"]) == {"mixed", "robi"}
     assert manifest["training"]["iterations"] > 0
-    assert (out / "contact" / "screw.png").stat().st_size > 10_000
+    assert (out / "contact" / "bracket.png").stat().st_size > 10_000
     assert (out / "demo.mcap").is_file() and "next: posefuse demo --parts" in text
 
     zport, hport = free_port(), free_port()
@@ -159,12 +159,9 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
             assert time.time() < deadline, get_json(f"{base}/stats")
             time.sleep(0.5)
         objects = get_json(f"{base}/objects")
-        # the network of a 2.5-minute budget finds little; what is checked is that the part set
-        # is served end to end: its class in the daemon's catalog, frames processed
-        classes = get_json(f"{base}/stats").get("classes") or {}
-        assert isinstance(objects, list)
-        assert all(o["class_name"] == "screw" for o in objects)
-        assert classes == {} or "screw" in json.dumps(classes)
+        # a 4-minute budget trains little, but enough on this part for the daemon to estimate
+        assert objects, get_json(f"{base}/stats")
+        assert all(o["class_name"] == "bracket" for o in objects)
     finally:
         daemon.terminate()
         daemon.wait(timeout=20)
