@@ -54,9 +54,7 @@ def detect_row(source: str, name: str, mesh) -> dict:
         f"{report.margin(a) * 100:.2f}%)"
         for a in report.axes
     )
-    alternatives = "; ".join(
-        f"{a.name()} ({a.residual * 100:.2f}%)" for a in report.alternatives
-    )
+    alternatives = "; ".join(f"{a.name()} ({a.residual * 100:.2f}%)" for a in report.alternatives)
     return {
         "source": source,
         "name": name,

@@ -72,6 +72,9 @@ def _settings(args: argparse.Namespace):
         overrides["listen"] = args.listen
     if getattr(args, "connect", None):
         overrides["connect"] = args.connect
+    for name in ("zenoh_config", "state_dir"):
+        if getattr(args, name, None):
+            overrides[name] = getattr(args, name)
     try:
         return Settings(**overrides)
     except ValidationError as exc:
@@ -113,6 +116,14 @@ def _add_transport_args(p: argparse.ArgumentParser, listen_default: str | None =
         metavar="ENDPOINT",
         help="zenoh endpoints to connect to, e.g. tcp/router:7447 ("
         + settings_default("POSEFUSE_CONNECT", "none")
+        + ")",
+    )
+    p.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="a Zenoh JSON5 config file (TLS, access control), kept as is except for the "
+        "transport options given explicitly ("
+        + settings_default("POSEFUSE_ZENOH_CONFIG", "none")
         + ")",
     )
 

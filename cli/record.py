@@ -86,7 +86,7 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 
         def handled() -> int:
             stats = _get_json(f"{args.url.rstrip('/')}/stats")
-            return stats["frames_processed"] + sum(stats["frames_dropped"].values())
+            return stats["frames_handled"]
 
         try:
             handled()

@@ -35,13 +35,22 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from service.daemon import Daemon
     from service.worker import EstimatorWorker, make_detector
 
+    limit_malloc_arenas()
     settings = claim_http_port(_settings(args))
     catalog = load_catalog(settings.catalog)
     detect = make_detector(settings, catalog)
     estimator = MultiViewEstimator(catalog, show_progress=True)
     for obj_id in catalog:  # templates before the first frame, not during it
         estimator.matcher(obj_id)
-    daemon = Daemon(settings, EstimatorWorker(estimator, detect))
+    store = None
+    if settings.state_dir is not None:
+        from service.state import StateStore, catalog_fingerprint
+
+        store = StateStore(settings.state_dir, catalog_fingerprint(catalog))
+    daemon = Daemon(settings, EstimatorWorker(estimator, detect), state_store=store)
+    restored = daemon.restore_state()
+    if store is not None:
+        print(f"posefuse: state in {store.path} ({restored} objects restored)", flush=True)
     thread = threading.Thread(target=daemon.run, name="posefuse-daemon", daemon=True)
     thread.start()
     if not daemon.ready.wait(30):
@@ -63,6 +72,20 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         daemon.stop()
         thread.join(timeout=10)
     return 0
+
+
+def limit_malloc_arenas(arenas: int = 2) -> None:
+    """Few glibc malloc arenas: with one per thread (the default), freed image buffers stay
+    with the process and RSS only grows under load. No-op where mallopt is missing."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        M_ARENA_MAX = -8
+        libc.mallopt(M_ARENA_MAX, arenas)
+    except (OSError, AttributeError):
+        pass
 
 
 def _cmd_publish(args: argparse.Namespace) -> int:
@@ -176,6 +199,12 @@ def register(subparsers) -> None:
         "--model",
         help="ONNX model of the front end ("
         + settings_default("POSEFUSE_MODEL", "the shipped models/robi_like.onnx")
+        + ")",
+    )
+    p.add_argument(
+        "--state-dir",
+        help="keep snapshots of the tracks here and restore them at start ("
+        + settings_default("POSEFUSE_STATE_DIR", "none: state is lost with the process")
         + ")",
     )
     p.set_defaults(func=_cmd_serve)

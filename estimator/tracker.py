@@ -348,7 +348,7 @@ class MultiViewEstimator:
 
         if frame.image is not None:
             self._images[stamp] = frame.image
-            for stale in sorted(self._images)[: -self.config.max_pending_views]:
+            for stale in list(self._images)[: -self.config.max_pending_views]:  # oldest received
                 del self._images[stale]
             for j, oid in assigned:
                 if oid in self.tracks:
@@ -411,6 +411,38 @@ class MultiViewEstimator:
         for k in keys:
             del self.tracks[k]
         return len(keys)
+
+    STATE_VERSION = 1
+
+    def export_state(self) -> dict:
+        """The tracks and the counters that go with them, as plain picklable data: translation
+        Gaussians, rotation mixtures, the views kept. Frames' images are not included (views
+        still waiting for their rotation lose them). Restored by :meth:`import_state`."""
+        return {
+            "version": self.STATE_VERSION,
+            "tracks": self.tracks,
+            "serial": self._serial,
+            "size_ratios": self._size_ratios,
+            "held": self._held,
+            "view_serial": self._view_serial,
+            "last_stamp_ns": self.last_stamp_ns,
+        }
+
+    def import_state(self, state: dict) -> None:
+        """Replace the tracks by those of :meth:`export_state`; ValueError if the state is of
+        another version or names a class this catalog does not have."""
+        if not isinstance(state, dict) or state.get("version") != self.STATE_VERSION:
+            raise ValueError(f"estimator state: version must be {self.STATE_VERSION}")
+        unknown = {t.obj_id for t in state["tracks"].values()} - set(self.catalog)
+        if unknown:
+            raise ValueError(f"estimator state: classes {sorted(unknown)} not in the catalog")
+        self.tracks = dict(state["tracks"])
+        self._serial = dict(state["serial"])
+        self._size_ratios = dict(state["size_ratios"])
+        self._held = dict(state["held"])
+        self._view_serial = int(state["view_serial"])
+        self.last_stamp_ns = state["last_stamp_ns"]
+        self._images = {}
 
     # ---- internals --------------------------------------------------------------------------
 

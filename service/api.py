@@ -1,17 +1,24 @@
 """The HTTP API, in the daemon's process: thin routes over the daemon's snapshot and counters.
 
-Errors become HTTP codes here only: an unknown object 404, a bad reset request 422.
+Errors become HTTP codes here only, and every code a route can give is in the OpenAPI document:
+an unknown object 404, a bad request 422 (non-finite numbers, booleans for integers and unknown
+fields included), a missing or wrong API token 401, a body over ``max_body_bytes`` 413.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hmac
 import json
+import math
 import queue
+from typing import Annotated
 
-from fastapi import FastAPI, HTTPException
-from fastapi.responses import StreamingResponse
-from pydantic import BaseModel, Field, model_validator
+from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, StreamingResponse
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
 from service.codec import estimate_to_dict
 
@@ -55,8 +62,8 @@ class ObjectEstimateModel(BaseModel):
 class ResetRequestModel(BaseModel):
     """Reset everything (empty body), one class, or one object."""
 
-    class_id: int | None = None
-    object_id: str | None = None
+    class_id: StrictInt | None = Field(None, ge=1, le=2**31 - 1)  # not a bool, not a float
+    object_id: str | None = Field(None, min_length=1, max_length=256)
 
     @model_validator(mode="after")
     def _one(self):
@@ -64,13 +71,118 @@ class ResetRequestModel(BaseModel):
             raise ValueError("give class_id or object_id, not both")
         return self
 
-    model_config = {
-        "json_schema_extra": {"examples": [{}, {"class_id": 4}, {"object_id": "gear-001"}]}
-    }
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{}, {"class_id": 4}, {"object_id": "gear-001"}]},
+    )
 
 
 class ResetResponse(BaseModel):
     removed: int
+
+
+class ErrorModel(BaseModel):
+    """An error: what went wrong, in words."""
+
+    detail: str
+
+
+class ValidationIssue(BaseModel):
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class ValidationErrorModel(BaseModel):
+    """A request that does not match the schema: one entry per problem."""
+
+    detail: list[ValidationIssue]
+
+
+def _error(description: str, model=ErrorModel) -> dict:
+    return {"model": model, "description": description}
+
+
+INVALID = {422: _error("The request does not match the schema", ValidationErrorModel)}
+TOO_LARGE = {413: _error("The request body is larger than max_body_bytes")}
+UNAUTHORIZED = {401: _error("The API token is set and the request does not carry it")}
+
+
+class BodySizeLimit:
+    """ASGI middleware: a request body over ``max_bytes`` gets 413 before a route reads it,
+    by its Content-Length or, when it has none, by reading it first (bodies here are small)."""
+
+    def __init__(self, app, max_bytes: int):
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers", []))
+        if b"content-length" in headers:
+            try:
+                too_large = int(headers[b"content-length"]) > self.max_bytes
+            except ValueError:
+                too_large = True
+            if too_large:
+                return await self._refuse(send)
+            return await self.app(scope, receive, send)
+        if scope.get("method") in ("GET", "HEAD", "OPTIONS"):
+            return await self.app(scope, receive, send)
+        messages, size = [], 0
+        while True:
+            message = await receive()
+            messages.append(message)
+            if message["type"] != "http.request":
+                break
+            size += len(message.get("body", b""))
+            if size > self.max_bytes:
+                return await self._refuse(send)
+            if not message.get("more_body", False):
+                break
+
+        async def replay():
+            return messages.pop(0) if messages else await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _refuse(self, send):
+        body = json.dumps({"detail": f"request body over {self.max_bytes} bytes"}).encode()
+        await send(
+            {
+                "type": "http.response.start",
+                "status": 413,
+                "headers": [(b"content-type", b"application/json")],
+            }
+        )
+        await send({"type": "http.response.body", "body": body})
+
+
+def _json_safe(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 with the documented shape; the offending input is not echoed back (it may be huge or
+    not representable in JSON, as NaN is)."""
+    detail = [
+        {
+            "loc": [_json_safe(x) if isinstance(x, (int, str)) else str(x) for x in e["loc"]],
+            "msg": str(e.get("msg", "")),
+            "type": str(e.get("type", "")),
+        }
+        for e in exc.errors()
+    ]
+    return JSONResponse(status_code=422, content={"detail": detail})
+
+
+async def _http_error(request: Request, exc: HTTPException) -> JSONResponse:
+    return JSONResponse(
+        status_code=exc.status_code, content={"detail": str(exc.detail)}, headers=exc.headers
+    )
 
 
 def _serve_docs_locally(app: FastAPI) -> None:
@@ -97,21 +209,51 @@ def _serve_docs_locally(app: FastAPI) -> None:
 
 
 def create_app(daemon) -> FastAPI:
-    """The API of one daemon (anything with worker, stats_dict, reset, subscribe, ready)."""
+    """The API of one daemon (anything with settings, worker, stats_dict, reset, subscribe,
+    ready)."""
+    settings = daemon.settings
+    token = settings.api_token.get_secret_value() if settings.api_token else None
     app = FastAPI(
         title="posefuse",
-        description="Multi-view 6D poses of textureless parts: current estimates, reset, stats.",
+        description="Multi-view 6D poses of textureless parts: current estimates, reset, stats."
+        + (" Mutating routes need `Authorization: Bearer <POSEFUSE_API_TOKEN>`." if token else ""),
         version="1",
         docs_url=None,  # served below from local assets: a cell is often offline
         redoc_url=None,
+        exception_handlers={
+            RequestValidationError: _validation_error,
+            HTTPException: _http_error,
+        },
     )
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _serve_docs_locally(app)
+    bearer = HTTPBearer(auto_error=False, description="POSEFUSE_API_TOKEN")
+
+    def require_token(
+        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+    ) -> None:
+        if token is None:
+            return
+        given = credentials.credentials.encode() if credentials else b""
+        if not hmac.compare_digest(given, token.encode()):
+            raise HTTPException(
+                status_code=401,
+                detail="missing or wrong API token",
+                headers={"WWW-Authenticate": "Bearer"},
+            )
+
+    guard = [Depends(require_token)] if token else []
+    events_guard = guard if settings.protect_events else []
 
     @app.get("/healthz", summary="The process is alive")
     def healthz() -> dict:
         return {"status": "ok"}
 
-    @app.get("/readyz", summary="The Zenoh session is open and the estimator is ready")
+    @app.get(
+        "/readyz",
+        summary="The Zenoh session is open and the estimator is ready",
+        responses={503: _error("Not ready yet (or stopping)")},
+    )
     def readyz() -> dict:
         if not daemon.ready.is_set():
             raise HTTPException(status_code=503, detail="not ready")
@@ -121,14 +263,30 @@ def create_app(daemon) -> FastAPI:
     def objects() -> list[dict]:
         return [estimate_to_dict(e) for e in daemon.worker.snapshot()]
 
-    @app.get("/objects/{object_id}", response_model=ObjectEstimateModel, summary="One object")
+    @app.get(
+        "/objects/{object_id}",
+        response_model=ObjectEstimateModel,
+        summary="One object",
+        responses={404: _error("No object with this id")},
+    )
     def one(object_id: str) -> dict:
         e = daemon.worker.get(object_id)
         if e is None:
             raise HTTPException(status_code=404, detail=f"no object {object_id!r}")
         return estimate_to_dict(e)
 
-    @app.post("/reset", response_model=ResetResponse, summary="Forget all, a class, or an object")
+    @app.post(
+        "/reset",
+        response_model=ResetResponse,
+        summary="Forget all, a class, or an object",
+        dependencies=guard,
+        responses={
+            404: _error("No object with this id"),
+            **INVALID,
+            **TOO_LARGE,
+            **(UNAUTHORIZED if token else {}),
+        },
+    )
     def reset(request: ResetRequestModel | None = None) -> dict:
         request = request or ResetRequestModel()
         try:
@@ -144,8 +302,23 @@ def create_app(daemon) -> FastAPI:
     def stats() -> dict:
         return daemon.stats_dict()
 
-    @app.get("/events", summary="Server-Sent Events: one 'estimate' event per pose update")
-    async def events(max_events: int = 0) -> StreamingResponse:
+    @app.get(
+        "/events",
+        summary="Server-Sent Events: one 'estimate' event per pose update",
+        response_class=StreamingResponse,
+        dependencies=events_guard,
+        responses={
+            200: {
+                "description": "An endless event stream (or max_events events)",
+                "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            },
+            **INVALID,
+            **(UNAUTHORIZED if events_guard else {}),
+        },
+    )
+    async def events(
+        max_events: int = Query(0, ge=0, le=1_000_000, description="stop after N, 0: never"),
+    ) -> StreamingResponse:
         q = daemon.subscribe()
 
         async def stream():

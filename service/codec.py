@@ -24,12 +24,19 @@ MAX_IMAGE_SIDE = 8192
 DEFAULT_MAX_PAYLOAD = 16 * 1024 * 1024
 
 
-class DecodeError(PosefuseError):
-    """A message that cannot be used: which kind, and why."""
+DEFAULT_MAX_PIXELS = 4096 * 4096
 
-    def __init__(self, kind: str, reason: str):
+
+class DecodeError(PosefuseError):
+    """A message that cannot be used: which kind, why, and a short code for the counters
+    (``malformed``; ``too_large`` for a payload or image over the limits, checked before any
+    decoding; ``header_mismatch`` for a compressed image whose own header contradicts the
+    message's size)."""
+
+    def __init__(self, kind: str, reason: str, code: str = "malformed"):
         self.kind = kind
         self.reason = reason
+        self.code = code
         super().__init__(f"{kind}: {reason}")
 
 
@@ -47,6 +54,7 @@ class ImageMsg:
     stamp_ns: int
     frame_id: str
     image: np.ndarray
+    seq: int | None = None  # the publisher's image counter, when it sends one
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +65,7 @@ class CameraPoseMsg:
     frame_id: str
     parent_frame: str
     T_world_cam: np.ndarray
+    seq: int | None = None  # the publisher's pose counter, when it sends one
 
 
 @dataclass(frozen=True)
@@ -72,7 +81,7 @@ def _unpack(payload: bytes, kind: str, max_bytes: int) -> dict:
     if not isinstance(payload, (bytes, bytearray, memoryview)):
         raise DecodeError(kind, "payload must be bytes")
     if len(payload) > max_bytes:
-        raise DecodeError(kind, f"payload of {len(payload)} bytes exceeds {max_bytes}")
+        raise DecodeError(kind, f"payload of {len(payload)} bytes exceeds {max_bytes}", "too_large")
     try:
         msg = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises several unrelated types
@@ -110,6 +119,55 @@ def _floats(msg: dict, key: str, kind: str, n: int | None = None, max_n: int = 6
     return a
 
 
+def _optional_seq(msg: dict, kind: str) -> int | None:
+    if msg.get("seq") is None:
+        return None
+    return _int(msg, "seq", kind, 0, 2**63 - 1)
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic): the frame size
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def compressed_image_size(data: bytes, encoding: str) -> tuple[int, int]:
+    """(width, height) a PNG or JPEG stream declares in its own header (IHDR, SOF), read
+    without decoding anything; DecodeError when there is no such header.
+
+    A decompression bomb is a small stream whose header declares a huge image: the size is
+    checked against the message and the pixel limit before the decoder allocates anything.
+    """
+    kind = "Image"
+    if encoding == "png":
+        if len(data) < 24 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+            raise DecodeError(kind, "data is not a PNG stream (no IHDR header)")
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if len(data) < 4 or data[0] != 0xFF or data[1] != 0xD8:
+        raise DecodeError(kind, "data is not a JPEG stream (no SOI marker)")
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            raise DecodeError(kind, f"JPEG stream: no marker at byte {i}")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD8)):  # standalone markers
+            i += 2
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if marker in _JPEG_SOF:
+            if length < 7 or i + 9 > len(data):
+                raise DecodeError(kind, "JPEG stream: truncated frame header")
+            height = int.from_bytes(data[i + 5 : i + 7], "big")
+            width = int.from_bytes(data[i + 7 : i + 9], "big")
+            return width, height
+        if marker in (0xDA, 0xD9) or length < 2:  # scan data or end before any frame header
+            break
+        i += 2 + length
+    raise DecodeError(kind, "JPEG stream: no frame header (SOF) before the image data")
+
+
 # ---------------------------------------------------------------------------- decoders
 
 
@@ -136,7 +194,11 @@ def decode_camera_info(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> 
     return CameraInfoMsg(stamp, frame_id, camera)
 
 
-def decode_image(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> ImageMsg:
+def decode_image(
+    payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD, max_pixels: int = DEFAULT_MAX_PIXELS
+) -> ImageMsg:
+    """An Image message, decoded to (H, W, 3) RGB. The declared size is checked against
+    ``max_pixels`` and, for PNG and JPEG, against the stream's own header before decoding."""
     kind = "Image"
     msg = _unpack(payload, kind, max_bytes)
     stamp = _int(msg, "stamp_ns", kind)
@@ -144,12 +206,24 @@ def decode_image(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> ImageM
     encoding = _str(msg, "encoding", kind, 16)
     width = _int(msg, "width", kind, 1, MAX_IMAGE_SIDE)
     height = _int(msg, "height", kind, 1, MAX_IMAGE_SIDE)
+    seq = _optional_seq(msg, kind)
     data = msg.get("data")
     if not isinstance(data, (bytes, bytearray)):
         raise DecodeError(kind, "field 'data' must be bytes")
     if encoding not in ENCODINGS:
         raise DecodeError(kind, f"encoding {encoding!r} is not one of {list(ENCODINGS)}")
+    if width * height > max_pixels:
+        raise DecodeError(
+            kind, f"{width}x{height} exceeds the limit of {max_pixels} pixels", "too_large"
+        )
     if encoding in ("jpeg", "png"):
+        w, h = compressed_image_size(data, encoding)
+        if (w, h) != (width, height):
+            raise DecodeError(
+                kind,
+                f"the {encoding} header says {w}x{h}, the message says {width}x{height}",
+                "header_mismatch",
+            )
         buf = np.frombuffer(data, np.uint8)
         image = cv2.imdecode(buf, cv2.IMREAD_COLOR) if len(buf) else None
         if image is None:
@@ -171,7 +245,7 @@ def decode_image(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> ImageM
         raise DecodeError(
             kind, f"image is {image.shape[1]}x{image.shape[0]}, the message says {width}x{height}"
         )
-    return ImageMsg(stamp, frame_id, image)
+    return ImageMsg(stamp, frame_id, image, seq)
 
 
 def decode_image_compressed(
@@ -203,10 +277,11 @@ def decode_camera_pose(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> 
         raise DecodeError(kind, f"q must be a unit quaternion [x, y, z, w], |q| = {norm:.6g}")
     if np.linalg.norm(t) > 1e4:
         raise DecodeError(kind, "t is more than 10 km from the origin")
+    seq = _optional_seq(msg, kind)
     T = np.eye(4)
     T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()
     T[:3, 3] = t
-    return CameraPoseMsg(stamp, frame_id, parent, T)
+    return CameraPoseMsg(stamp, frame_id, parent, T, seq)
 
 
 def decode_reset(payload: bytes | None, max_bytes: int = 4096) -> ResetRequest:
@@ -248,7 +323,12 @@ def encode_camera_info(stamp_ns: int, frame_id: str, camera: Camera) -> bytes:
 
 
 def encode_image(
-    stamp_ns: int, frame_id: str, image_rgb: np.ndarray, encoding: str = "jpeg", quality: int = 90
+    stamp_ns: int,
+    frame_id: str,
+    image_rgb: np.ndarray,
+    encoding: str = "jpeg",
+    quality: int = 90,
+    seq: int | None = None,
 ) -> bytes:
     h, w = image_rgb.shape[:2]
     if encoding == "jpeg":
@@ -271,12 +351,17 @@ def encode_image(
             "width": int(w),
             "height": int(h),
             "data": data,
+            **({} if seq is None else {"seq": int(seq)}),
         }
     )
 
 
 def encode_camera_pose(
-    stamp_ns: int, frame_id: str, T_world_cam: np.ndarray, parent_frame: str = "world"
+    stamp_ns: int,
+    frame_id: str,
+    T_world_cam: np.ndarray,
+    parent_frame: str = "world",
+    seq: int | None = None,
 ) -> bytes:
     q = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat()
     return _pack(
@@ -286,6 +371,7 @@ def encode_camera_pose(
             "parent_frame": parent_frame,
             "t": [float(x) for x in T_world_cam[:3, 3]],
             "q": [float(x) for x in q],
+            **({} if seq is None else {"seq": int(seq)}),
         }
     )
 

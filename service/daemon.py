@@ -1,20 +1,33 @@
-"""The estimator daemon on Zenoh: decode and enqueue in callbacks, estimate in one worker thread.
+"""The estimator daemon on Zenoh: enqueue in callbacks, decode in a small pool, estimate in one
+worker thread.
 
-- Subscribers on ``{cell}/@v1/cam/*/*`` decode each message (:mod:`service.codec`) and hand it
-  to the :class:`~service.sync.FrameSynchronizer`; a bad message is counted per key and logged,
-  never raised.
-- One worker thread takes frames in stamp order, runs :class:`~service.worker.EstimatorWorker`
+- The subscriber on ``{cell}/@v1/cam/*/*`` only checks the key and the payload size and hands
+  the bytes to a decoder thread (one per camera, chosen by a stable hash, so a camera's
+  messages stay in order); a full decoder queue drops the message and counts it. Nothing is
+  decoded on the transport's threads.
+- Decoders turn bytes into messages (:mod:`service.codec`; image sizes checked on the stream's
+  header before decoding) and give them to the :class:`~service.sync.FrameSynchronizer`. A bad
+  message is counted by key and by reason, and logged, never raised.
+- A camera whose images come without camera info is asked for it: a get on its info key
+  (``clients/camera.py`` answers it), at most every ``info_request_s``; at start, every camera.
+- One worker thread takes synchronised frames, runs :class:`~service.worker.EstimatorWorker`
   and publishes every updated ObjectEstimate on ``{cell}/@v1/objects/{object_id}``.
-- Queryables answer ``estimator/state`` (all current estimates) and ``estimator/reset``; a
-  liveliness token ``estimator/alive`` says the daemon is up.
+- Queryables answer ``estimator/state`` and ``estimator/reset`` (with ``api_token`` set, a
+  reset needs the token as the query's attachment); a liveliness token ``estimator/alive``
+  says the daemon is up.
+- With a ``state_dir``, the tracks are snapshotted every ``state_interval_s`` and at a clean
+  stop, and restored at start (:mod:`service.state`).
 """
 
 from __future__ import annotations
 
+import hmac
 import logging
 import queue
 import threading
 import time
+import zlib
+from collections import Counter
 
 from service.codec import (
     DecodeError,
@@ -27,63 +40,139 @@ from service.codec import (
     estimate_to_dict,
 )
 from service.keys import Keys
-from service.settings import Settings, zenoh_config
+from service.settings import Settings, sync_config, zenoh_config
 from service.sync import FrameSynchronizer
 from service.worker import EstimatorWorker, now_ns
 
 log = logging.getLogger("posefuse.daemon")
 
-DECODERS = {"info": decode_camera_info, "image": decode_image, "pose": decode_camera_pose}
+
+def decoders(settings: Settings | None = None) -> dict:
+    """Decoding function per camera key kind, with the settings' limits."""
+    max_bytes = settings.max_payload_bytes if settings else 16 * 1024 * 1024
+    max_pixels = settings.max_image_pixels if settings else 4096 * 4096
+    return {
+        "info": lambda p: decode_camera_info(p, max_bytes),
+        "image": lambda p: decode_image(p, max_bytes, max_pixels),
+        "pose": lambda p: decode_camera_pose(p, max_bytes),
+    }
+
+
+DECODERS = decoders()
 
 
 class Daemon:
-    def __init__(self, settings: Settings, worker: EstimatorWorker):
+    def __init__(self, settings: Settings, worker: EstimatorWorker, state_store=None):
         self.settings = settings
         self.worker = worker
         self.keys = Keys(settings.cell)
-        self.sync = FrameSynchronizer(
-            image_queue=settings.image_queue,
-            pose_buffer=settings.pose_buffer,
-            max_pose_gap_ns=settings.max_pose_gap_ns,
-            pose_wait_ns=settings.pose_wait_ns,
-        )
+        self.sync = FrameSynchronizer(sync_config(settings))
         self.stats = worker.stats
-        self._arrival: dict[int, int] = {}
+        self.stats.max_keys = 3 * settings.max_cameras + 8
+        self.decode = decoders(settings)
+        self.ingest_dropped: Counter = Counter()
+        self.images_received = 0
+        self.events: Counter = Counter()
+        self._queues = [
+            queue.Queue(maxsize=settings.ingest_queue) for _ in range(settings.decode_threads)
+        ]
+        self._info_asked: dict[str, float] = {}
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._listeners: list[queue.Queue] = []
         self._listeners_lock = threading.Lock()
         self.ready = threading.Event()
         self.session = None
+        self.state_store = state_store
+        self.snapshot_info = None
+        self.restored = 0
+        self._started = time.monotonic()
 
     # ------------------------------------------------------------------ transport callbacks
     def on_sample(self, sample) -> None:
-        key = str(sample.key_expr)
+        """Subscriber callback: check the key and the size, enqueue; never decode here."""
         try:
-            self.stats.count(self.stats.received, key)
-            parsed = self.keys.parse_camera(key)
-            if parsed is None:
-                raise DecodeError("key", f"{key} is not a camera input key")
-            cam_id, kind = parsed
-            payload = sample.payload.to_bytes()
-            msg = DECODERS[kind](payload, self.settings.max_payload_bytes)
-            if kind == "info":
-                self.sync.add_info(cam_id, msg)
-            elif kind == "pose":
-                self.sync.add_pose(cam_id, msg)
-            else:
-                self._arrival[msg.stamp_ns] = now_ns()
-                if len(self._arrival) > 1000:
-                    for k in sorted(self._arrival)[:500]:
-                        self._arrival.pop(k, None)
-                self.sync.add_image(cam_id, msg)
-            self._wake.set()
-        except DecodeError as exc:
-            self.stats.count(self.stats.decode_errors, key)
-            log.warning("%s: %s", key, exc)
+            self.ingest(str(sample.key_expr), sample.payload.to_bytes())
         except Exception:  # a daemon never dies of a message
-            self.stats.count(self.stats.decode_errors, key)
-            log.exception("%s: unexpected error while decoding", key)
+            log.exception("unexpected error while receiving")
+
+    def ingest(self, key: str, payload: bytes) -> bool:
+        """Hand one received message to its decoder; False when it was dropped (counted)."""
+        parsed = self.keys.parse_camera(key)
+        if parsed is None:
+            self.stats.count(self.stats.received, "other")
+            self.ingest_dropped["not_an_input_key"] += 1
+            return False
+        self.stats.count(self.stats.received, key)
+        if parsed[1] == "image":
+            self.images_received += 1
+        if len(payload) > self.settings.max_payload_bytes:
+            self._decode_failed(key, parsed[1], "too_large")
+            return False
+        q = self._queues[zlib.crc32(parsed[0].encode()) % len(self._queues)]
+        try:
+            q.put_nowait((key, parsed[0], parsed[1], payload, now_ns()))
+        except queue.Full:
+            self.ingest_dropped[f"{parsed[1]}_ingest_full"] += 1
+            return False
+        return True
+
+    def _decode_failed(self, key: str, kind: str, code: str) -> None:
+        self.stats.count(self.stats.decode_errors, key)
+        self.stats.count(self.stats.decode_reasons, f"{kind}_{code}")
+
+    def _decode_loop(self, q: queue.Queue) -> None:
+        while not self._stop.is_set():
+            try:
+                item = q.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            key, cam_id, kind, payload, arrival = item
+            try:
+                msg = self.decode[kind](payload)
+            except DecodeError as exc:
+                self._decode_failed(key, kind, exc.code)
+                log.warning("%s: %s", key, exc)
+                continue
+            except Exception:
+                self._decode_failed(key, kind, "unexpected")
+                log.exception("%s: unexpected error while decoding", key)
+                continue
+            if kind == "info":
+                self.sync.add_info(cam_id, msg, arrival)
+            elif kind == "pose":
+                self.sync.add_pose(cam_id, msg, arrival)
+            else:
+                self.sync.add_image(cam_id, msg, arrival)
+                if not self.sync.has_info(cam_id):
+                    self.request_info(cam_id)
+            self._wake.set()
+
+    def request_info(self, cam_id: str) -> None:
+        """Ask a camera for its info (a get on its info key), at most every info_request_s."""
+        session = self.session
+        now = time.monotonic()
+        if session is None or now - self._info_asked.get(cam_id, -1e9) < (
+            self.settings.info_request_s
+        ):
+            return
+        if len(self._info_asked) > 4 * self.settings.max_cameras:
+            self._info_asked.clear()
+        self._info_asked[cam_id] = now
+        self.events["info_requests"] += 1
+        try:
+            session.get(self.keys.camera(cam_id, "info"), self._on_info_reply, timeout=2.0)
+        except Exception:
+            log.exception("camera info request for %s failed", cam_id)
+
+    def _on_info_reply(self, reply) -> None:
+        try:
+            ok = reply.ok
+            if ok is not None:
+                self.events["info_replies"] += 1
+                self.ingest(str(ok.key_expr), ok.payload.to_bytes())
+        except Exception:
+            log.exception("camera info reply")
 
     def on_state_query(self, query) -> None:
         try:
@@ -91,18 +180,37 @@ class Daemon:
         except Exception:
             log.exception("state query failed")
 
+    def authorized(self, token: bytes | str | None) -> bool:
+        """True when no api_token is set or ``token`` is it (compared in constant time)."""
+        expected = self.settings.api_token
+        if expected is None:
+            return True
+        if token is None:
+            return False
+        if isinstance(token, str):
+            token = token.encode()
+        return hmac.compare_digest(token, expected.get_secret_value().encode())
+
     def on_reset_query(self, query) -> None:
         import msgpack
 
         try:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            request = decode_reset(payload)
-            removed = self.reset(request.class_id, request.object_id)
-            reply = {"v": 1, "removed": removed}
+            attachment = query.attachment.to_bytes() if query.attachment is not None else None
+            if not self.authorized(attachment):
+                self.events["reset_unauthorized"] += 1
+                reply = {"v": 1, "error": "unauthorized: the reset query needs the API token"}
+            else:
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                request = decode_reset(payload)
+                removed = self.reset(request.class_id, request.object_id)
+                reply = {"v": 1, "removed": removed}
         except (DecodeError, ValueError) as exc:
             reply = {"v": 1, "error": str(exc)}
         except KeyError as exc:
             reply = {"v": 1, "error": f"unknown object_id {exc.args[0]}"}
+        except Exception:
+            log.exception("reset query failed")
+            reply = {"v": 1, "error": "internal error"}
         try:
             query.reply(self.keys.reset, msgpack.packb(reply, use_bin_type=True))
         except Exception:
@@ -131,7 +239,7 @@ class Daemon:
     # ------------------------------------------------------------------ worker
     def _work(self, session) -> None:
         while not self._stop.is_set():
-            frame = self.sync.pop()
+            frame = self.sync.pop(now_ns())
             if frame is None:
                 self._wake.wait(0.01)
                 self._wake.clear()
@@ -142,11 +250,13 @@ class Daemon:
                 self.stats.errors += 1
                 log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
                 continue
-            arrival = self._arrival.pop(frame.stamp_ns, None)
-            if arrival is not None:
-                self.stats.latencies_ms.append((now_ns() - arrival) / 1e6)
+            if frame.arrival_ns:
+                self.stats.latencies_ms.append((now_ns() - frame.arrival_ns) / 1e6)
             for e in updated:
-                session.put(self.keys.object(e.object_id), encode_estimate(e))
+                try:
+                    session.put(self.keys.object(e.object_id), encode_estimate(e))
+                except Exception:
+                    log.exception("publishing %s failed", e.object_id)
                 self._notify(estimate_to_dict(e))
 
     def reset(self, class_id=None, object_id=None) -> int:
@@ -156,10 +266,56 @@ class Daemon:
         )
         return n
 
+    # ------------------------------------------------------------------ state on disk
+    def restore_state(self) -> int:
+        """Restore the tracks of the state folder's snapshot; how many objects came back."""
+        if self.state_store is None:
+            return 0
+        from service.state import StateError
+
+        try:
+            state = self.state_store.load()
+        except StateError as exc:
+            log.warning("%s", exc)
+            self.events["state_rejected"] += 1
+            return 0
+        if state is None:
+            return 0
+        try:
+            self.worker.import_state(state)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("%s: not restored (%s)", self.state_store.path, exc)
+            self.events["state_rejected"] += 1
+            return 0
+        self.restored = len(self.worker.snapshot())
+        log.info("restored %d objects from %s", self.restored, self.state_store.path)
+        return self.restored
+
+    def save_state(self) -> None:
+        if self.state_store is None:
+            return
+        try:
+            self.snapshot_info = self.state_store.save(self.worker.export_state())
+            self.events["state_saved"] += 1
+        except Exception:  # a full disk must not stop the estimates
+            self.events["state_save_failed"] += 1
+            log.exception("saving the state to %s failed", self.state_store.path)
+
+    def _snapshot_loop(self) -> None:
+        while not self._stop.wait(self.settings.state_interval_s):
+            self.save_state()
+
+    # ------------------------------------------------------------------ lifecycle
     def run(self) -> None:
         """Open the session, serve until :meth:`stop`."""
         import zenoh
 
+        threads = [
+            threading.Thread(target=self._decode_loop, args=(q,), daemon=True, name=f"decode-{i}")
+            for i, q in enumerate(self._queues)
+        ]
+        if self.state_store is not None:
+            threads.append(threading.Thread(target=self._snapshot_loop, daemon=True))
         with zenoh.open(zenoh_config(self.settings)) as session:
             self.session = session
             subscriber = session.declare_subscriber(self.keys.camera_inputs, self.on_sample)
@@ -169,13 +325,21 @@ class Daemon:
             worker = threading.Thread(
                 target=self._work, args=(session,), daemon=True, name="posefuse-worker"
             )
-            worker.start()
+            for t in [*threads, worker]:
+                t.start()
+            try:  # cameras already running: ask for their info rather than wait for it
+                session.get(f"{self.keys.root}/cam/*/info", self._on_info_reply, timeout=2.0)
+            except Exception:
+                log.exception("asking the cameras for their info failed")
             self.ready.set()
             try:
                 while not self._stop.wait(0.2):
                     pass
             finally:
-                worker.join(timeout=5)
+                self.ready.clear()
+                for t in [*threads, worker]:
+                    t.join(timeout=5)
+                self.save_state()
                 for entity in (token, reset, state, subscriber):
                     entity.undeclare()
                 self.session = None
@@ -184,20 +348,45 @@ class Daemon:
         self._stop.set()
         self._wake.set()
 
+    def frames_handled(self) -> int:
+        """Images received and dealt with: processed, failed or dropped for any reason."""
+        s = self.stats
+        return (
+            s.processed
+            + s.errors
+            + sum(self.sync.dropped.values())
+            + sum(n for k, n in s.decode_reasons.items() if k.startswith("image_"))
+            + sum(n for k, n in self.ingest_dropped.items() if k.startswith("image_"))
+        )
+
     def stats_dict(self) -> dict:
         s = self.stats
+        dropped = Counter(self.sync.dropped)
+        for reason, n in s.decode_reasons.items():
+            kind, _, code = reason.partition("_")
+            if kind == "image":
+                dropped[f"decode_{code}"] += n
+        for reason, n in self.ingest_dropped.items():
+            if reason.startswith("image_"):
+                dropped[reason.removeprefix("image_")] += n
+        cameras = self.sync.camera_counters()
         return {
-            "frames_received": sum(v for k, v in s.received.items() if k.endswith("/image")),
+            "frames_received": self.images_received,
             "frames_processed": s.processed,
-            "frames_dropped": dict(self.sync.dropped),
+            "frames_handled": self.frames_handled(),
+            "frames_dropped": dict(sorted(dropped.items())),
             "frames_pending": self.sync.pending(),
+            "queued_bytes": self.sync.queued_bytes(),
+            "ingest_pending": sum(q.qsize() for q in self._queues),
             "received": dict(s.received),
             "decode_errors": dict(s.decode_errors),
+            "decode_errors_by_reason": dict(s.decode_reasons),
+            "messages_dropped": dict(self.ingest_dropped),
             "processing_errors": s.errors,
             "latency": s.latency(),
-            "cameras": self.sync.cameras(),
-            "uptime_s": time.monotonic() - _START,
+            "cameras": cameras,
+            "sync_events": dict(self.sync.events),
+            "events": dict(self.events),
+            "restored_objects": self.restored,
+            "uptime_s": time.monotonic() - self._started,
         }
-
-
-_START = time.monotonic()

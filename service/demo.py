@@ -134,7 +134,7 @@ def run_demo(
     sent: dict[str, int] = {}
 
     def handled() -> int:
-        return daemon.stats.processed + daemon.stats.errors + sum(daemon.sync.dropped.values())
+        return daemon.frames_handled()
 
     client_conf = zenoh_config(
         settings.model_copy(update={"listen": [], "mode": "peer", "connect": settings.listen})

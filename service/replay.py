@@ -9,8 +9,15 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.codec import DecodeError, decode_reset, encode_estimate, estimate_to_dict
-from service.daemon import DECODERS
+from service.codec import (
+    DecodeError,
+    decode_camera_info,
+    decode_camera_pose,
+    decode_image,
+    decode_reset,
+    encode_estimate,
+    estimate_to_dict,
+)
 from service.keys import Keys
 from service.recording import Recorder
 from service.sync import FrameSynchronizer
@@ -33,6 +40,7 @@ def replay_offline(
     sync: FrameSynchronizer | None = None,
     max_payload_bytes: int = 16 * 1024 * 1024,
     recorder: Recorder | None = None,
+    max_image_pixels: int = 4096 * 4096,
 ) -> ReplayResult:
     """(log_time_ns, key, payload) in log-time order -> what the daemon would have published.
 
@@ -40,6 +48,9 @@ def replay_offline(
     request recorded on the reset key is carried out (after the frames before it). With a
     ``recorder``, every message read and every estimate published (on its object key, at the
     log time of the message that completed the frame) is written to it.
+
+    The log time stands for the arrival time of the live daemon: the synchroniser's waiting
+    deadlines are judged in it, so a replay gives the same output on every machine.
     """
     keys = Keys(cell)
     sync = sync or FrameSynchronizer()
@@ -66,12 +77,20 @@ def replay_offline(
             continue  # outputs and other cells' keys in a recording are not inputs
         cam_id, kind = parsed
         try:
-            msg = DECODERS[kind](payload, max_payload_bytes)
-        except DecodeError:
+            if kind == "image":
+                msg = decode_image(payload, max_payload_bytes, max_image_pixels)
+            elif kind == "pose":
+                msg = decode_camera_pose(payload, max_payload_bytes)
+            else:
+                msg = decode_camera_info(payload, max_payload_bytes)
+        except DecodeError as exc:
             worker.stats.count(worker.stats.decode_errors, key)
+            worker.stats.count(worker.stats.decode_reasons, f"{kind}_{exc.code}")
             continue
-        {"info": sync.add_info, "pose": sync.add_pose, "image": sync.add_image}[kind](cam_id, msg)
-        while (frame := sync.pop()) is not None:
+        {"info": sync.add_info, "pose": sync.add_pose, "image": sync.add_image}[kind](
+            cam_id, msg, log_time
+        )
+        while (frame := sync.pop(log_time)) is not None:
             for e in worker.process(frame):
                 result.published.append(estimate_to_dict(e))
                 if recorder is not None:

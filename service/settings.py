@@ -10,7 +10,7 @@ import json
 import os
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, JsonConfigSettingsSource, SettingsConfigDict
 
 from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
@@ -31,17 +31,36 @@ class Settings(BaseSettings):
     # HTTP API
     http_host: str = "127.0.0.1"
     http_port: int = 8000
+    api_token: SecretStr | None = Field(
+        None,
+        description="when set, POST routes (and /events with protect_events) need "
+        "'Authorization: Bearer <token>', and Zenoh reset queries carry it as attachment",
+    )
+    protect_events: bool = False
+    max_body_bytes: int = 64 * 1024  # HTTP request bodies larger than this are refused (413)
+    # state that survives restarts
+    state_dir: Path | None = Field(
+        None, description="snapshots of the tracks are kept here and restored at start"
+    )
+    state_interval_s: float = 5.0
     # estimator
     catalog: Path = Path(DEFAULT_CATALOG)
     model: Path = Path(DEFAULT_MODEL)
     onnx_threads: int = 2
-    # input handling
+    # input handling (service/sync.py explains each)
     max_payload_bytes: int = 16 * 1024 * 1024
+    max_image_pixels: int = 4096 * 4096  # checked on the declared and the header size
+    decode_threads: int = 2  # images are decoded off the transport's threads
+    ingest_queue: int = 16  # messages waiting for a decoder, per decoder thread
     image_queue: int = 4  # frames buffered per camera: the latest win when behind
+    max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
+    max_cameras: int = 16
+    camera_timeout_s: float = 60.0  # a silent camera is forgotten after this
     pose_buffer: int = 200  # camera poses kept per camera for interpolation
     max_pose_gap_ns: int = 200_000_000  # poses further apart than this are not interpolated
-    reorder_window_ns: int = 100_000_000  # images older than the newest by more are dropped
-    pose_wait_ns: int = 200_000_000  # how long an image waits for a later pose
+    wait_ms: float = 500.0  # how long an image waits for its camera info and a later pose
+    reanchor_frames: int = 3  # late frames in a row after which a camera's clock re-anchors
+    info_request_s: float = 1.0  # a camera without info is asked for it at most this often
 
     @field_validator("mode")
     @classmethod
@@ -61,18 +80,50 @@ class Settings(BaseSettings):
         return tuple(sources)
 
 
+def sync_config(settings: Settings):
+    """The FrameSynchronizer configuration of these settings."""
+    from service.sync import SyncConfig
+
+    return SyncConfig(
+        image_queue=settings.image_queue,
+        pose_buffer=settings.pose_buffer,
+        max_pose_gap_ns=settings.max_pose_gap_ns,
+        wait_ns=int(settings.wait_ms * 1e6),
+        reanchor_frames=settings.reanchor_frames,
+        camera_timeout_ns=int(settings.camera_timeout_s * 1e9),
+        max_cameras=settings.max_cameras,
+        max_queued_bytes=settings.max_queued_bytes,
+    )
+
+
+TRANSPORT_FIELDS = ("mode", "listen", "connect", "multicast_scouting")
+
+
 def zenoh_config(settings: Settings):
-    """The zenoh.Config of these settings (shared transport flags live here only)."""
+    """The zenoh.Config of these settings (shared transport flags live here only).
+
+    Without a Zenoh config file, the settings (or their defaults) make the whole transport.
+    With one (``zenoh_config``: TLS, access control, ...), the file is the base and is kept
+    untouched, except for the transport settings given explicitly (argument or environment):
+    a default never replaces the file's ``mode``, ``listen`` or ``connect``.
+    """
     import zenoh
 
     if settings.zenoh_config:
-        conf = zenoh.Config.from_file(str(settings.zenoh_config))
+        path = Path(settings.zenoh_config)
+        if not path.is_file():
+            raise ValueError(f"zenoh_config: {path} is not a file")
+        conf = zenoh.Config.from_file(str(path))
+        given = settings.model_fields_set
     else:
         conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(settings.mode))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
-    if settings.listen and settings.mode != "client":
+        given = set(TRANSPORT_FIELDS)
+    if "mode" in given:
+        conf.insert_json5("mode", json.dumps(settings.mode))
+    if "multicast_scouting" in given:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    if "listen" in given and settings.listen and settings.mode != "client":
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
-    if settings.connect:
+    if "connect" in given and settings.connect:
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
     return conf

@@ -1,24 +1,40 @@
-"""Per-camera buffers that turn decoded messages into estimator frames, in stamp order.
+"""Per-camera buffers that turn decoded messages into estimator frames.
+
+Every camera is synchronised on its own; nothing one camera does (or fails to do) holds back
+another:
 
 - Camera info is latched: the latest one of a camera is used for all its images.
 - Camera poses may come at another rate: an image's pose is interpolated (slerp / lerp) between
   the poses around its stamp, if they are at most ``max_pose_gap_ns`` apart; a pose within
-  ``exact_tolerance_ns`` of the stamp is used as is.
-- Images wait in a bounded queue per camera; when it is full the oldest is dropped (the latest
-  frames win when the estimator falls behind).
-- Frames leave in global stamp order; an image older than the last frame handed out is late and
-  dropped, and one that has waited for a later pose longer than ``pose_wait_ns`` (in stamp time
-  of that camera's newer images) is dropped too. Every drop is counted by reason.
+  ``exact_tolerance_ns`` of the stamp is used as is. The pose buffer forgets the poses received
+  longest ago (not the oldest stamps), so a camera whose clock steps back keeps working.
+- Images wait in a bounded queue per camera, in stamp order; when it is full the oldest is
+  dropped (the latest frames win when the estimator falls behind). The decoded images of all
+  queues together are bounded by ``max_queued_bytes``.
+- An image waits for its camera's info and for a pose after its stamp at most ``wait_ns`` of
+  arrival time, then it is dropped (``no_info`` / ``no_pose``).
+- Lateness is per camera: an image not newer than the last one handed out *of that camera* is
+  late and dropped. ``reanchor_frames`` late images in a row, in increasing stamp order, mean
+  that camera's clock stepped back (or a publisher restarted, or a stamp far in the future got
+  through): the camera re-anchors on them and goes on (``reanchored`` counts it).
+- Ready frames of different cameras leave oldest stamp first; a camera waiting for its pose
+  does not hold back another one's ready frame.
+- A camera silent for ``camera_timeout_ns`` is forgotten; at most ``max_cameras`` are kept.
+- Sequence numbers (optional ``seq`` of images and poses) expose loss upstream of the daemon:
+  per camera and kind, ``lost`` counts the numbers skipped, ``restarts`` a sequence that began
+  again.
 
-Thread-safe: decoders call the ``add_*`` methods from transport threads, the worker ``pop``.
+Times: message stamps are the cameras' clocks; ``now_ns`` (arrival time, passed in by the
+caller: wall clock live, log time in replay) is the daemon's. Nothing here reads a clock.
+Thread-safe: decoders call the ``add_*`` methods, the worker ``pop``.
 """
 
 from __future__ import annotations
 
 import bisect
 import threading
-from collections import Counter, deque
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -34,6 +50,28 @@ class SyncedFrame:
     image: np.ndarray  # (H, W, 3) uint8 RGB
     camera: Camera
     T_world_cam: np.ndarray  # (4, 4)
+    arrival_ns: int = 0  # when the image arrived (the caller's clock)
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    image_queue: int = 4  # images buffered per camera
+    pose_buffer: int = 200  # poses kept per camera for interpolation
+    max_pose_gap_ns: int = 200_000_000  # poses further apart are not interpolated
+    exact_tolerance_ns: int = 1_000_000  # a pose this close to the stamp is used as is
+    wait_ns: int = 500_000_000  # arrival time an image may wait for its info and pose
+    reanchor_frames: int = 3  # late images in a row (increasing stamps) that re-anchor a camera
+    camera_timeout_ns: int = 60_000_000_000  # a camera silent this long is forgotten
+    max_cameras: int = 16
+    max_queued_bytes: int = 512 * 1024 * 1024  # decoded images waiting, all cameras together
+
+    def __post_init__(self) -> None:
+        for name in ("image_queue", "pose_buffer", "reanchor_frames", "max_cameras"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"SyncConfig.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_pose_gap_ns", "wait_ns", "camera_timeout_ns", "max_queued_bytes"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"SyncConfig.{name} must be > 0, got {getattr(self, name)}")
 
 
 def interpolate_pose(t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int) -> np.ndarray:
@@ -48,28 +86,89 @@ def interpolate_pose(t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int) -
     return T
 
 
+@dataclass
+class _Waiting:
+    msg: ImageMsg
+    arrival_ns: int
+
+
+@dataclass
+class CameraCounters:
+    """What one camera sent and what became of it."""
+
+    images: int = 0
+    poses: int = 0
+    infos: int = 0
+    processed: int = 0
+    lost: Counter = field(default_factory=Counter)  # per kind: sequence numbers skipped
+    restarts: Counter = field(default_factory=Counter)  # per kind: sequences begun again
+
+    def as_dict(self) -> dict:
+        return {
+            "images": self.images,
+            "poses": self.poses,
+            "infos": self.infos,
+            "processed": self.processed,
+            "lost": dict(self.lost),
+            "restarts": dict(self.restarts),
+        }
+
+
 class _Camera:
-    def __init__(self, pose_buffer: int, image_queue: int):
+    def __init__(self, config: SyncConfig, now_ns: int):
+        self.config = config
         self.info: CameraInfoMsg | None = None
         self.pose_stamps: list[int] = []
         self.poses: list[np.ndarray] = []
-        self.pose_buffer = pose_buffer
-        self.images: deque[ImageMsg] = deque()
-        self.image_queue = image_queue
+        self.pose_order: list[int] = []  # receive serial of each pose, to forget the oldest
+        self.serial = 0
+        self.images: list[_Waiting] = []  # stamp order
+        self.last_out: int | None = None  # stamp of the last frame handed out
+        self.late_run: list[int] = []  # stamps of the late images in a row
+        self.late_run_serial = 0  # pose serial when that run began
+        self.last_seen = now_ns
+        self.last_seq: dict[str, int] = {}
+        self.counters = CameraCounters()
+
+    def queued_bytes(self) -> int:
+        return sum(w.msg.image.nbytes for w in self.images)
+
+    def note_seq(self, kind: str, seq: int | None) -> None:
+        if seq is None:
+            return
+        last = self.last_seq.get(kind)
+        if last is not None:
+            if seq > last + 1:
+                self.counters.lost[kind] += seq - last - 1
+            elif seq <= last:
+                self.counters.restarts[kind] += 1
+        self.last_seq[kind] = seq
 
     def add_pose(self, stamp: int, T: np.ndarray) -> None:
+        self.serial += 1
         k = bisect.bisect_left(self.pose_stamps, stamp)
         if k < len(self.pose_stamps) and self.pose_stamps[k] == stamp:
             self.poses[k] = T
+            self.pose_order[k] = self.serial
             return
         self.pose_stamps.insert(k, stamp)
         self.poses.insert(k, T)
-        if len(self.poses) > self.pose_buffer:
-            del self.pose_stamps[0], self.poses[0]
+        self.pose_order.insert(k, self.serial)
+        if len(self.poses) > self.config.pose_buffer:
+            j = int(np.argmin(self.pose_order))
+            del self.pose_stamps[j], self.poses[j], self.pose_order[j]
 
-    def pose_at(self, stamp: int, max_gap: int, exact: int):
+    def forget_poses_before(self, serial: int) -> None:
+        """Forget the poses received before the pose serial ``serial`` (the old clock's)."""
+        keep = [j for j, o in enumerate(self.pose_order) if o > serial]
+        self.pose_stamps = [self.pose_stamps[j] for j in keep]
+        self.poses = [self.poses[j] for j in keep]
+        self.pose_order = [self.pose_order[j] for j in keep]
+
+    def pose_at(self, stamp: int):
         """(T, 'ok') or (None, 'wait' | 'no_pose')."""
         s = self.pose_stamps
+        max_gap, exact = self.config.max_pose_gap_ns, self.config.exact_tolerance_ns
         if not s:
             return None, "wait"
         k = bisect.bisect_left(s, stamp)
@@ -78,105 +177,164 @@ class _Camera:
                 return self.poses[j].copy(), "ok"
         if k == 0:
             return None, "no_pose"  # older than every pose kept
-        if k == len(s):
-            return None, "wait"  # no later pose yet
-        if s[k] - s[k - 1] > max_gap:
-            return None, "no_pose"
+        if stamp - s[k - 1] > max_gap:
+            return None, "no_pose"  # the pose before is too far; the next can only be further
+        if k == len(s) or s[k] - s[k - 1] > max_gap:
+            return None, "wait"  # a pose after the stamp, close enough, may still come
         return interpolate_pose(s[k - 1], self.poses[k - 1], s[k], self.poses[k], stamp), "ok"
 
 
 class FrameSynchronizer:
-    def __init__(
-        self,
-        image_queue: int = 4,
-        pose_buffer: int = 200,
-        max_pose_gap_ns: int = 200_000_000,
-        pose_wait_ns: int = 200_000_000,
-        exact_tolerance_ns: int = 1_000_000,
-    ):
+    def __init__(self, config: SyncConfig | None = None):
+        self.config = config or SyncConfig()
         self._lock = threading.Lock()
         self._cams: dict[str, _Camera] = {}
-        self.image_queue = image_queue
-        self.pose_buffer = pose_buffer
-        self.max_pose_gap_ns = max_pose_gap_ns
-        self.pose_wait_ns = pose_wait_ns
-        self.exact_tolerance_ns = exact_tolerance_ns
-        self.last_stamp_ns: int | None = None
-        self.dropped: Counter = Counter()
+        self.dropped: Counter = Counter()  # images dropped, by reason
+        self.events: Counter = Counter()  # reanchored, cameras_forgotten
 
-    def _cam(self, cam_id: str) -> _Camera:
-        if cam_id not in self._cams:
-            self._cams[cam_id] = _Camera(self.pose_buffer, self.image_queue)
-        return self._cams[cam_id]
+    # ------------------------------------------------------------------ inputs
+    def _cam(self, cam_id: str, now_ns: int) -> _Camera | None:
+        cam = self._cams.get(cam_id)
+        if cam is None:
+            if len(self._cams) >= self.config.max_cameras:
+                self._forget_silent(now_ns)
+            if len(self._cams) >= self.config.max_cameras:
+                return None
+            cam = self._cams[cam_id] = _Camera(self.config, now_ns)
+        cam.last_seen = max(cam.last_seen, now_ns)
+        return cam
 
-    def add_info(self, cam_id: str, msg: CameraInfoMsg) -> None:
+    def add_info(self, cam_id: str, msg: CameraInfoMsg, now_ns: int = 0) -> bool:
+        """False when the camera is not taken (too many cameras)."""
         with self._lock:
-            self._cam(cam_id).info = msg
+            cam = self._cam(cam_id, now_ns)
+            if cam is None:
+                self.events["too_many_cameras"] += 1
+                return False
+            cam.counters.infos += 1
+            cam.info = msg
+            return True
 
-    def add_pose(self, cam_id: str, msg: CameraPoseMsg) -> None:
+    def add_pose(self, cam_id: str, msg: CameraPoseMsg, now_ns: int = 0) -> bool:
         with self._lock:
-            self._cam(cam_id).add_pose(msg.stamp_ns, msg.T_world_cam)
+            cam = self._cam(cam_id, now_ns)
+            if cam is None:
+                self.events["too_many_cameras"] += 1
+                return False
+            cam.counters.poses += 1
+            cam.note_seq("pose", msg.seq)
+            cam.add_pose(msg.stamp_ns, msg.T_world_cam)
+            return True
 
-    def add_image(self, cam_id: str, msg: ImageMsg) -> None:
+    def add_image(self, cam_id: str, msg: ImageMsg, now_ns: int = 0) -> bool:
+        """Queue an image; False when it was dropped at once (counted by reason)."""
         with self._lock:
-            if self.last_stamp_ns is not None and msg.stamp_ns <= self.last_stamp_ns:
-                self.dropped["late"] += 1
-                return
-            cam = self._cam(cam_id)
-            k = bisect.bisect([m.stamp_ns for m in cam.images], msg.stamp_ns)
-            cam.images.insert(k, msg)
-            while len(cam.images) > cam.image_queue:
-                cam.images.popleft()
+            cam = self._cam(cam_id, now_ns)
+            if cam is None:
+                self.dropped["too_many_cameras"] += 1
+                return False
+            cam.counters.images += 1
+            cam.note_seq("image", msg.seq)
+            stamp = msg.stamp_ns
+            if cam.last_out is not None and stamp <= cam.last_out:
+                if cam.late_run and stamp <= cam.late_run[-1]:
+                    cam.late_run = []
+                if not cam.late_run:
+                    cam.late_run_serial = cam.serial
+                cam.late_run.append(stamp)
+                if len(cam.late_run) < self.config.reanchor_frames:
+                    self.dropped["late"] += 1
+                    return False
+                # the camera's clock stepped back: start again from this run
+                self.events["reanchored"] += 1
+                cam.last_out = None
+                cam.late_run = []
+                cam.forget_poses_before(cam.late_run_serial)
+                self.dropped["reanchored"] += len(cam.images)
+                cam.images = []
+            else:
+                cam.late_run = []
+            need = msg.image.nbytes
+            total = sum(c.queued_bytes() for c in self._cams.values())
+            if need > self.config.max_queued_bytes:
+                self.dropped["memory"] += 1
+                return False
+            while total + need > self.config.max_queued_bytes:
+                victim = max(self._cams.values(), key=lambda c: c.queued_bytes())
+                total -= victim.images.pop(0).msg.image.nbytes
+                self.dropped["memory"] += 1
+            k = bisect.bisect([w.msg.stamp_ns for w in cam.images], stamp)
+            cam.images.insert(k, _Waiting(msg, now_ns))
+            while len(cam.images) > self.config.image_queue:
+                cam.images.pop(0)
                 self.dropped["queue_full"] += 1
+            return True
 
+    # ------------------------------------------------------------------ output
+    def pop(self, now_ns: int = 0) -> SyncedFrame | None:
+        """The oldest frame that can be processed now, with its camera and pose; or None.
+
+        Images that waited longer than ``wait_ns`` for their info or pose are dropped here, and
+        cameras silent for ``camera_timeout_ns`` forgotten.
+        """
+        with self._lock:
+            self._forget_silent(now_ns)
+            ready: list[tuple[int, str, np.ndarray]] = []
+            for cid, cam in self._cams.items():
+                while cam.images:
+                    head = cam.images[0]
+                    waited = now_ns - head.arrival_ns
+                    if cam.info is None:
+                        if waited > self.config.wait_ns:
+                            cam.images.pop(0)
+                            self.dropped["no_info"] += 1
+                            continue
+                        break
+                    T, status = cam.pose_at(head.msg.stamp_ns)
+                    if status == "no_pose" or (status == "wait" and waited > self.config.wait_ns):
+                        cam.images.pop(0)
+                        self.dropped["no_pose"] += 1
+                        continue
+                    if status == "ok":
+                        ready.append((head.msg.stamp_ns, cid, T))
+                    break
+            if not ready:
+                return None
+            stamp, cid, T = min(ready, key=lambda r: (r[0], r[1]))
+            cam = self._cams[cid]
+            head = cam.images.pop(0)
+            cam.last_out = stamp
+            cam.counters.processed += 1
+            return SyncedFrame(cid, stamp, head.msg.image, cam.info.camera, T, head.arrival_ns)
+
+    def _forget_silent(self, now_ns: int) -> None:
+        for cid in [
+            c
+            for c, cam in self._cams.items()
+            if now_ns - cam.last_seen > self.config.camera_timeout_ns
+        ]:
+            cam = self._cams.pop(cid)
+            self.dropped["camera_forgotten"] += len(cam.images)
+            self.events["cameras_forgotten"] += 1
+
+    # ------------------------------------------------------------------ introspection
     def pending(self) -> int:
         with self._lock:
             return sum(len(c.images) for c in self._cams.values())
 
-    def pop(self) -> SyncedFrame | None:
-        """The oldest image that can be processed now, with its camera and pose; or None."""
+    def queued_bytes(self) -> int:
         with self._lock:
-            while True:
-                candidates = [
-                    (c.images[0].stamp_ns, cid) for cid, c in self._cams.items() if c.images
-                ]
-                if not candidates:
-                    return None
-                blocked = []
-                for _, cid in sorted(candidates):
-                    cam = self._cams[cid]
-                    msg = cam.images[0]
-                    if cam.info is None:
-                        if len(cam.images) >= cam.image_queue:
-                            cam.images.popleft()
-                            self.dropped["no_info"] += 1
-                            break
-                        blocked.append(cid)
-                        continue
-                    T, status = cam.pose_at(
-                        msg.stamp_ns, self.max_pose_gap_ns, self.exact_tolerance_ns
-                    )
-                    if status == "no_pose":
-                        cam.images.popleft()
-                        self.dropped["no_pose"] += 1
-                        break
-                    if status == "wait":
-                        newest = cam.images[-1].stamp_ns
-                        if newest - msg.stamp_ns > self.pose_wait_ns:
-                            cam.images.popleft()
-                            self.dropped["pose_timeout"] += 1
-                            break
-                        blocked.append(cid)
-                        continue
-                    if blocked:
-                        # an older image of another camera waits for its pose: keep stamp order
-                        return None
-                    cam.images.popleft()
-                    self.last_stamp_ns = msg.stamp_ns
-                    return SyncedFrame(cid, msg.stamp_ns, msg.image, cam.info.camera, T)
-                else:
-                    return None
+            return sum(c.queued_bytes() for c in self._cams.values())
+
+    def has_info(self, cam_id: str) -> bool:
+        with self._lock:
+            cam = self._cams.get(cam_id)
+            return cam is not None and cam.info is not None
 
     def cameras(self) -> list[str]:
         with self._lock:
             return sorted(self._cams)
+
+    def camera_counters(self) -> dict[str, dict]:
+        with self._lock:
+            return {cid: self._cams[cid].counters.as_dict() for cid in sorted(self._cams)}

@@ -21,13 +21,20 @@ from service.sync import SyncedFrame
 
 @dataclass
 class Stats:
+    """Counters of the daemon. Per-key tables hold at most ``max_keys`` keys: the keys beyond
+    are counted together under ``other`` (junk keys must not grow memory)."""
+
     received: dict[str, int] = field(default_factory=dict)  # per key
     decode_errors: dict[str, int] = field(default_factory=dict)  # per key
+    decode_reasons: dict[str, int] = field(default_factory=dict)  # per DecodeError code
     processed: int = 0
     errors: int = 0
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=1000))
+    max_keys: int = 64
 
     def count(self, table: dict[str, int], key: str) -> None:
+        if key not in table and len(table) >= self.max_keys:
+            key = "other"
         table[key] = table.get(key, 0) + 1
 
     def latency(self) -> dict[str, float | None]:
@@ -72,6 +79,18 @@ class EstimatorWorker:
     def get(self, object_id: str) -> ObjectEstimate | None:
         with self._lock:
             return self._snapshot.get(object_id)
+
+    def export_state(self) -> dict:
+        """The estimator's tracks as picklable data (a deep copy, taken under the lock)."""
+        import copy
+
+        with self._lock:
+            return copy.deepcopy(self.estimator.export_state())
+
+    def import_state(self, state: dict) -> None:
+        with self._lock:
+            self.estimator.import_state(state)
+            self._snapshot = {e.object_id: e for e in self.estimator.estimates()}
 
     def reset(self, class_id: int | None = None, object_id: str | None = None) -> int:
         """Forget tracks; KeyError for an unknown object, ValueError for an unknown class."""

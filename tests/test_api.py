@@ -85,3 +85,73 @@ def test_docs_page_loads_its_assets_locally_not_from_a_cdn(daemon):
         assert asset in page.text
         got = client.get(asset)
         assert got.status_code == 200 and len(got.content) > 1000
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        '{"class_id": NaN}',
+        '{"class_id": Infinity}',
+        '{"class_id": -Infinity}',
+        '{"class_id": 1e400}',
+        '{"class_id": true}',
+        '{"class_id": 1.0}',
+        '{"class_id": "1"}',
+        '{"class_id": 0}',
+        '{"object_id": ""}',
+        '{"object_id": 5}',
+        '{"clas_id": 1}',
+        "[1, 2]",
+        "not json",
+    ],
+)
+def test_bad_reset_bodies_are_422_and_change_nothing(daemon, body):
+    client = TestClient(create_app(daemon))
+    before = client.get("/objects").json()
+    r = client.post("/reset", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 422, r.text
+    assert isinstance(r.json()["detail"], list) and r.json()["detail"][0]["msg"]
+    assert client.get("/objects").json() == before
+
+
+def test_body_size_limit(daemon):
+    client = TestClient(create_app(daemon))
+    big = b'{"object_id": "' + b"x" * 200_000 + b'"}'
+    r = client.post("/reset", content=big, headers={"content-type": "application/json"})
+    assert r.status_code == 413 and "x" * 100 not in r.text
+
+    def chunks():  # no Content-Length: the limit applies while the body streams in
+        for _ in range(100):
+            yield b"x" * 10_000
+
+    r = client.post("/reset", content=chunks(), headers={"content-type": "application/json"})
+    assert r.status_code == 413
+    assert len(client.get("/objects").json()) >= 3
+
+
+def test_api_token_guards_mutating_routes(daemon):
+    from service.settings import Settings
+
+    daemon.settings = Settings(api_token="s3cret-token", protect_events=True)
+    client = TestClient(create_app(daemon))
+    n = len(client.get("/objects").json())  # reading needs no token
+    assert n >= 3
+    assert client.post("/reset").status_code == 401
+    wrong = {"Authorization": "Bearer nope"}
+    assert client.post("/reset", headers=wrong).status_code == 401
+    assert client.get("/events", params={"max_events": 1}).status_code == 401
+    assert len(client.get("/objects").json()) == n
+    good = {"Authorization": "Bearer s3cret-token"}
+    assert client.post("/reset", headers=good).json() == {"removed": n}
+    spec = client.get("/openapi.json").json()
+    assert "401" in spec["paths"]["/reset"]["post"]["responses"]
+
+
+def test_every_status_code_a_route_gives_is_documented(daemon):
+    spec = TestClient(create_app(daemon)).get("/openapi.json").json()
+    reset = spec["paths"]["/reset"]["post"]["responses"]
+    assert {"200", "404", "413", "422"} <= set(reset)
+    assert "404" in spec["paths"]["/objects/{object_id}"]["get"]["responses"]
+    assert "503" in spec["paths"]["/readyz"]["get"]["responses"]
+    events = spec["paths"]["/events"]["get"]["responses"]["200"]["content"]
+    assert list(events) == ["text/event-stream"]

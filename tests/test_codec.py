@@ -84,7 +84,7 @@ def test_bad_images_and_infos():
         decode_image(_pack({**good, "data": bytes(23)}))
     with pytest.raises(DecodeError, match="encoding"):
         decode_image(_pack({**good, "encoding": "yuv"}))
-    with pytest.raises(DecodeError, match="decodable jpeg"):
+    with pytest.raises(DecodeError, match="JPEG stream"):
         decode_image(_pack({**good, "encoding": "jpeg", "data": b"\xff\xd8nope"}))
     with pytest.raises(DecodeError, match="width"):
         decode_image(_pack({**good, "width": 100_000}))
@@ -99,3 +99,53 @@ def test_bad_images_and_infos():
         decode_camera_info(_pack({**info, "distortion_model": "fisheye"}))
     with pytest.raises(DecodeError, match="not both"):
         decode_reset(_pack({"v": 1, "class_id": 1, "object_id": "a"}))
+
+
+@pytest.mark.parametrize("encoding", ["png", "jpeg"])
+def test_decompression_bombs_are_refused_before_decoding(encoding):
+    """20000x20000 declared small: refused from the stream's header, within a few ms, without
+    allocating the image; declared honestly, refused by the pixel limit."""
+    import resource
+    import time
+
+    from bench.bombs import image_message, jpeg_bomb, png_bomb
+    from service.codec import compressed_image_size
+
+    stream = png_bomb() if encoding == "png" else jpeg_bomb()
+    assert compressed_image_size(stream, encoding) == (20000, 20000)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    with pytest.raises(DecodeError, match="header says 20000x20000") as info:
+        decode_image(image_message(stream, encoding, 1, declared=(100, 100)))
+    assert info.value.code == "header_mismatch"
+    with pytest.raises(DecodeError, match="exceeds the limit") as info:
+        decode_image(image_message(stream, encoding, 1, declared=(8192, 8192)))
+    assert info.value.code == "too_large"
+    assert time.perf_counter() - t0 < 0.5
+    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
+    assert grown_mb < 50
+
+
+def test_compressed_image_size_reads_real_headers():
+    import cv2
+
+    from service.codec import compressed_image_size
+
+    image = np.zeros((37, 53, 3), np.uint8)
+    for ext, encoding in ((".png", "png"), (".jpg", "jpeg")):
+        data = cv2.imencode(ext, image)[1].tobytes()
+        assert compressed_image_size(data, encoding) == (53, 37)
+    progressive = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    assert compressed_image_size(progressive, "jpeg") == (53, 37)
+    with pytest.raises(DecodeError, match="PNG"):
+        compressed_image_size(b"GIF89a" + bytes(30), "png")
+
+
+def test_sequence_numbers_round_trip():
+    image = np.zeros((2, 2, 3), np.uint8)
+    assert decode_image(encode_image(5, "c", image, "png", seq=41)).seq == 41
+    assert decode_image(encode_image(5, "c", image, "png")).seq is None
+    T = np.eye(4)
+    assert decode_camera_pose(encode_camera_pose(5, "c", T, seq=7)).seq == 7
+    with pytest.raises(DecodeError, match="seq"):
+        decode_camera_pose(_pack({**msgpack.unpackb(encode_camera_pose(5, "c", T)), "seq": -1}))

@@ -1,12 +1,15 @@
-"""Frame synchronisation: latched info, interpolated poses, stamp order, bounded queues."""
+"""Frame synchronisation: latched info, interpolated poses, per-camera order and deadlines,
+bounded queues, re-anchoring after clock steps, silent cameras, sequence gaps."""
 
 import numpy as np
+import pytest
 
 from service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
-from service.sync import FrameSynchronizer, interpolate_pose
+from service.sync import FrameSynchronizer, SyncConfig, interpolate_pose
 from sim.scenes import REALSENSE_1280x720 as CAM
 
 IMG = np.zeros((2, 2, 3), np.uint8)
+MS = 1_000_000
 
 
 def _pose(x, yaw_deg=0.0):
@@ -18,44 +21,159 @@ def _pose(x, yaw_deg=0.0):
     return T
 
 
+def _sync(**kw) -> FrameSynchronizer:
+    base = dict(max_pose_gap_ns=1000, exact_tolerance_ns=0, wait_ns=500 * MS)
+    base.update(kw)
+    return FrameSynchronizer(SyncConfig(**base))
+
+
+def _ready_camera(s, cam, now=0):
+    s.add_info(cam, CameraInfoMsg(0, cam, CAM), now)
+
+
 def test_interpolation_is_slerp_and_lerp():
     T = interpolate_pose(0, _pose(0.0, 0), 100, _pose(1.0, 90), 25)
     np.testing.assert_allclose(T, _pose(0.25, 22.5), atol=1e-12)
 
 
-def test_images_wait_for_poses_and_leave_in_stamp_order():
-    s = FrameSynchronizer(
-        image_queue=4, max_pose_gap_ns=1000, pose_wait_ns=10_000, exact_tolerance_ns=0
-    )
+def test_images_wait_for_poses_and_leave_oldest_first():
+    s = _sync()
     s.add_image("a", ImageMsg(500, "a", IMG))  # before its info: waits (info is latched)
     assert s.pop() is None
-    s.add_info("a", CameraInfoMsg(0, "a", CAM))
+    _ready_camera(s, "a")
     s.add_pose("a", CameraPoseMsg(0, "a", "world", _pose(0.0)))
     assert s.pop() is None  # no pose after stamp 500 yet
     s.add_pose("a", CameraPoseMsg(1000, "a", "world", _pose(1.0)))
     f = s.pop()
     assert f.stamp_ns == 500 and f.camera_id == "a"
     np.testing.assert_allclose(f.T_world_cam[0, 3], 0.5)
-    # a late image (older than what was handed out) is dropped and counted
-    s.add_image("a", ImageMsg(400, "a", IMG))
+    # a late image (not newer than what camera a handed out) is dropped and counted
+    assert not s.add_image("a", ImageMsg(400, "a", IMG))
     assert s.dropped["late"] == 1
-    # two cameras: global stamp order
-    s.add_info("b", CameraInfoMsg(0, "b", CAM))
+    # two cameras, both ready: the older stamp first
+    _ready_camera(s, "b")
     for cam in ("a", "b"):
         s.add_pose(cam, CameraPoseMsg(2000, cam, "world", _pose(2.0)))
     s.add_image("b", ImageMsg(1200, "b", IMG))
     s.add_image("a", ImageMsg(1100, "a", IMG))
     s.add_pose("b", CameraPoseMsg(1000, "b", "world", _pose(1.0)))
     assert [s.pop().stamp_ns, s.pop().stamp_ns] == [1100, 1200]
+    # lateness is per camera: b may still send a frame older than a's last one
+    s.add_pose("b", CameraPoseMsg(1300, "b", "world", _pose(1.3)))
+    assert s.add_image("b", ImageMsg(1250, "b", IMG))
+    assert s.pop().stamp_ns == 1250
 
 
 def test_queue_keeps_the_latest_and_gaps_are_not_bridged():
-    s = FrameSynchronizer(image_queue=2, max_pose_gap_ns=100, exact_tolerance_ns=0)
-    s.add_info("a", CameraInfoMsg(0, "a", CAM))
+    s = _sync(image_queue=2, max_pose_gap_ns=100)
+    _ready_camera(s, "a")
     for k in range(5):
         s.add_image("a", ImageMsg(10 + k, "a", IMG))
     assert s.dropped["queue_full"] == 3 and s.pending() == 2
     s.add_pose("a", CameraPoseMsg(0, "a", "world", _pose(0.0)))
     s.add_pose("a", CameraPoseMsg(1000, "a", "world", _pose(1.0)))  # 1 us apart: too far
-    assert s.pop() is None
-    assert s.dropped["no_pose"] == 2
+    assert s.pop(now_ns=100 * MS) is None  # a closer later pose may still come
+    assert s.pending() == 2
+    assert s.pop(now_ns=600 * MS) is None  # then the deadline passes
+    assert s.dropped["no_pose"] == 2 and s.pending() == 0
+
+
+def test_a_stalled_camera_never_blocks_another():
+    """An image without info and one whose pose never comes: the other camera goes on, and
+    both stalled images are dropped at their deadline with their reason."""
+    s = _sync()
+    s.add_image("mute", ImageMsg(1, "mute", np.zeros((8, 8, 3), np.uint8)), now_ns=0)
+    _ready_camera(s, "dying")
+    s.add_pose("dying", CameraPoseMsg(0, "dying", "world", _pose(0.0)))
+    s.add_image("dying", ImageMsg(2, "dying", IMG), now_ns=0)  # its later pose never comes
+    _ready_camera(s, "good")
+    out = []
+    for k in range(8):
+        stamp = 10 + 100 * k
+        s.add_pose("good", CameraPoseMsg(stamp, "good", "world", _pose(0.0)))
+        s.add_image("good", ImageMsg(stamp, "good", IMG), now_ns=k * 50 * MS)
+        while (f := s.pop(now_ns=k * 50 * MS)) is not None:
+            out.append(f.camera_id)
+    assert out == ["good"] * 8
+    assert s.pending() == 2
+    s.pop(now_ns=501 * MS)
+    assert s.dropped["no_info"] == 1 and s.dropped["no_pose"] == 1 and s.pending() == 0
+
+
+@pytest.mark.parametrize(
+    "first_stamp", [2**63 - 1000, 3_600_000_000_000 + 10_000], ids=["far-future", "clock+1h"]
+)
+def test_a_future_stamp_or_a_clock_step_re_anchors_the_camera(first_stamp):
+    s = _sync(reanchor_frames=3)
+    _ready_camera(s, "a")
+    s.add_pose("a", CameraPoseMsg(first_stamp, "a", "world", _pose(0.0)))
+    s.add_image("a", ImageMsg(first_stamp, "a", IMG))
+    assert s.pop().stamp_ns == first_stamp
+    got = []
+    for k in range(6):  # the good clock again
+        stamp = 10_000 + 100 * k
+        s.add_pose("a", CameraPoseMsg(stamp, "a", "world", _pose(0.0)))
+        s.add_image("a", ImageMsg(stamp, "a", IMG))
+        while (f := s.pop()) is not None:
+            got.append(f.stamp_ns)
+    assert s.dropped["late"] == 2 and s.events["reanchored"] == 1
+    assert got == [10_000 + 100 * k for k in range(2, 6)]
+
+
+def test_a_second_publisher_run_re_anchors_and_old_poses_are_forgotten():
+    s = _sync(reanchor_frames=2)
+    _ready_camera(s, "a")
+    for run, x in enumerate((0.0, 5.0)):
+        got = []
+        for k in range(4):  # the same stamps in both runs, other poses in the second
+            stamp = 1000 + 100 * k
+            s.add_pose("a", CameraPoseMsg(stamp - 10, "a", "world", _pose(x)))
+            s.add_image("a", ImageMsg(stamp, "a", IMG))
+            s.add_pose("a", CameraPoseMsg(stamp + 10, "a", "world", _pose(x)))
+            while (f := s.pop()) is not None:
+                got.append((f.stamp_ns, round(f.T_world_cam[0, 3], 9)))
+        expected = [(1000 + 100 * k, x) for k in range(0 if run == 0 else 1, 4)]
+        assert got == expected
+
+
+def test_pose_buffer_forgets_the_least_recently_received():
+    s = _sync(pose_buffer=3)
+    _ready_camera(s, "a")
+    for stamp in (10_000, 10_100, 10_200):
+        s.add_pose("a", CameraPoseMsg(stamp, "a", "world", _pose(1.0)))
+    for stamp in (100, 200, 300):  # a clock stepped back: these replace the old ones
+        s.add_pose("a", CameraPoseMsg(stamp, "a", "world", _pose(2.0)))
+    s.add_image("a", ImageMsg(150, "a", IMG))
+    f = s.pop()
+    assert f is not None and f.T_world_cam[0, 3] == 2.0
+
+
+def test_silent_cameras_are_forgotten_and_cameras_are_bounded():
+    s = _sync(max_cameras=2, camera_timeout_ns=10 * 10**9)
+    _ready_camera(s, "a", now=0)
+    _ready_camera(s, "b", now=0)
+    assert not s.add_image("c", ImageMsg(1, "c", IMG), now_ns=1)
+    assert s.dropped["too_many_cameras"] == 1
+    assert s.add_image("c", ImageMsg(1, "c", IMG), now_ns=11 * 10**9)  # a and b went silent
+    assert s.cameras() == ["c"] and s.events["cameras_forgotten"] == 2
+
+
+def test_queued_bytes_are_bounded_latest_win():
+    big = np.zeros((100, 100, 3), np.uint8)  # 30 kB
+    s = _sync(max_queued_bytes=100_000, image_queue=10)
+    for k, cam in enumerate("abcd" * 2):
+        s.add_image(cam, ImageMsg(k + 1, cam, big))
+    assert s.queued_bytes() <= 100_000 and s.dropped["memory"] == 5
+    assert not s.add_image("a", ImageMsg(99, "a", np.zeros((200, 200, 3), np.uint8)))
+
+
+def test_sequence_gaps_and_restarts_are_counted_per_camera():
+    s = _sync()
+    for seq in (0, 1, 2, 5, 6, 0, 1):
+        s.add_image("a", ImageMsg(seq + 1, "a", IMG, seq=seq))
+    for seq in (0, 10):
+        s.add_pose("a", CameraPoseMsg(seq, "a", "world", _pose(0.0), seq=seq))
+    counters = s.camera_counters()["a"]
+    assert counters["lost"] == {"image": 2, "pose": 9}
+    assert counters["restarts"] == {"image": 1}
+    assert counters["images"] == 7 and counters["poses"] == 2
