@@ -3,10 +3,11 @@
 Camera info is published first (and again every ``info_every`` frames: it is latched by the
 daemon anyway), and served on request: :func:`publish` answers queries on the camera's info
 key, so a daemon that (re)starts asks instead of waiting. Each view becomes a JPEG image stamped
-``t0 + k / rate``; images and poses carry sequence numbers, so the daemon can count any loss. Camera poses come at
-another rate, with jitter: the camera dwells at each view (as a robot does for a picture), and
-its pose is published a few milliseconds before and after the image (random, seeded), plus one
-pose half-way to the next view, so the daemon has to buffer and interpolate.
+``t0 + k / rate``; images and poses carry sequence numbers, so the daemon can count any loss.
+Camera poses come at another rate, with jitter: the camera dwells at each view (as a robot does
+for a picture), and its pose is published a few milliseconds before and after the image
+(random, seeded), plus one pose half-way to the next view, so the daemon has to buffer and
+interpolate.
 """
 
 from __future__ import annotations
