@@ -127,26 +127,42 @@ class Daemon:
                 item = q.get(timeout=0.2)
             except queue.Empty:
                 continue
-            key, cam_id, kind, payload, arrival = item
-            try:
-                msg = self.decode[kind](payload)
-            except DecodeError as exc:
-                self._decode_failed(key, kind, exc.code)
-                log.warning("%s: %s", key, exc)
-                continue
-            except Exception:
-                self._decode_failed(key, kind, "unexpected")
-                log.exception("%s: unexpected error while decoding", key)
-                continue
-            if kind == "info":
-                self.sync.add_info(cam_id, msg, arrival)
-            elif kind == "pose":
-                self.sync.add_pose(cam_id, msg, arrival)
-            else:
-                self.sync.add_image(cam_id, msg, arrival)
-                if not self.sync.has_info(cam_id):
-                    self.request_info(cam_id)
-            self._wake.set()
+            self._handle(*item)
+
+    def drain(self) -> int:
+        """Decode every queued message in this thread (tests and tools without :meth:`run`)."""
+        n = 0
+        for q in self._queues:
+            while True:
+                try:
+                    item = q.get_nowait()
+                except queue.Empty:
+                    break
+                self._handle(*item)
+                n += 1
+        return n
+
+    def _handle(self, key: str, cam_id: str, kind: str, payload: bytes, arrival: int) -> None:
+        """Decode one message and give it to the synchroniser; count it if it is bad."""
+        try:
+            msg = self.decode[kind](payload)
+        except DecodeError as exc:
+            self._decode_failed(key, kind, exc.code)
+            log.warning("%s: %s", key, exc)
+            return
+        except Exception:
+            self._decode_failed(key, kind, "unexpected")
+            log.exception("%s: unexpected error while decoding", key)
+            return
+        if kind == "info":
+            self.sync.add_info(cam_id, msg, arrival)
+        elif kind == "pose":
+            self.sync.add_pose(cam_id, msg, arrival)
+        else:
+            self.sync.add_image(cam_id, msg, arrival)
+            if not self.sync.has_info(cam_id):
+                self.request_info(cam_id)
+        self._wake.set()
 
     def request_info(self, cam_id: str) -> None:
         """Ask a camera for its info (a get on its info key), at most every info_request_s."""

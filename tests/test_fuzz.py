@@ -1,5 +1,7 @@
-"""1,000 malformed messages on every input key: the daemon keeps running, counts them, and its
-estimates do not change."""
+"""10,000 malformed messages on every input key (a seeded generator: random bytes, empty and
+oversized payloads, every field of a valid message replaced by a wrong value, decompression
+bombs): the daemon keeps running, counts them, its estimates do not change, and its memory
+stays bounded."""
 
 import math
 
@@ -17,7 +19,8 @@ from sim.scenes import REALSENSE_1280x720 as CAM
 from sim.scenes import SceneSpec
 from sim.sequences import make_sequence
 
-N = 1000
+N = 10_000
+RSS_BOUND_MB = 1024
 
 
 class _Payload:
@@ -32,6 +35,19 @@ class _Sample:
     def __init__(self, key, data):
         self.key_expr = key
         self.payload = _Payload(data)
+
+
+_BOMBS = {}
+
+
+def _bomb(rng):
+    from bench.bombs import image_message, jpeg_bomb, png_bomb
+
+    if not _BOMBS:
+        _BOMBS["png"], _BOMBS["jpeg"] = png_bomb(), jpeg_bomb()
+    encoding = ("png", "jpeg")[int(rng.integers(2))]
+    declared = [(8, 8), (4096, 4096), (8192, 8192)][int(rng.integers(3))]
+    return image_message(_BOMBS[encoding], encoding, 5, declared)
 
 
 def _garbage(rng, kind):
@@ -54,6 +70,8 @@ def _garbage(rng, kind):
     if r == 1:
         return b""
     if r == 2:
+        if kind == "image" and rng.integers(2):
+            return _bomb(rng)
         return b"\x00" * (17 * 1024 * 1024)  # oversized
     if r == 3:
         return msgpack.packb([1, 2, 3])
@@ -97,26 +115,46 @@ def daemon(robi_catalog):
     return Daemon(Settings(cell="fuzz"), worker)
 
 
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return 0.0
+
+
 def test_malformed_messages_are_counted_and_change_nothing(daemon):
     before = {e.object_id: e.T_world_obj.copy() for e in daemon.worker.snapshot()}
     assert before
     rng = np.random.default_rng(0)
     accepted = 0
+    peak = 0.0
     for kind in ("info", "image", "pose"):
         key = f"fuzz/@v1/cam/cam0/{kind}"
-        for _ in range(N):
+        for k in range(N):
             errors = daemon.stats.decode_errors.get(key, 0)
             daemon.on_sample(_Sample(key, _garbage(rng, kind)))
+            daemon.drain()
             accepted += daemon.stats.decode_errors.get(key, 0) == errors
+            if k % 500 == 0:
+                peak = max(peak, _rss_mb())
+            while daemon.sync.pop() is not None:  # the few valid ones are not processed
+                pass
     # a few mutations leave a valid message (e.g. a frame_id of 'x'); all others are counted
     stats = daemon.stats_dict()
     for kind in ("info", "image", "pose"):
         assert stats["decode_errors"][f"fuzz/@v1/cam/cam0/{kind}"] >= 0.8 * N
         assert stats["received"][f"fuzz/@v1/cam/cam0/{kind}"] == N
     assert accepted < 0.2 * 3 * N
-    # unknown keys are counted as well
-    daemon.on_sample(_Sample("fuzz/@v1/cam/cam0/depth", b"x"))
-    assert daemon.stats.decode_errors["fuzz/@v1/cam/cam0/depth"] == 1
+    assert stats["decode_errors_by_reason"]["image_header_mismatch"] > 0
+    assert stats["decode_errors_by_reason"]["image_too_large"] > 0
+    assert peak < RSS_BOUND_MB, f"RSS reached {peak:.0f} MB"
+    # unknown keys are counted as well, all under one counter however many there are
+    for k in range(5000):
+        daemon.on_sample(_Sample(f"fuzz/@v1/cam/cam{k}/depth", b"x"))
+    assert daemon.stats.received["other"] == 5000
+    assert daemon.ingest_dropped["not_an_input_key"] == 5000
+    assert len(daemon.stats_dict()["received"]) <= daemon.stats.max_keys
     after = {e.object_id: e.T_world_obj for e in daemon.worker.snapshot()}
     assert after.keys() == before.keys()
     for oid in before:
