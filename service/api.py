@@ -62,8 +62,9 @@ class ObjectEstimateModel(BaseModel):
 class ResetRequestModel(BaseModel):
     """Reset everything (empty body), one class, or one object."""
 
-    class_id: StrictInt | None = Field(None, ge=1, le=2**31 - 1)  # not a bool, not a float
-    object_id: str | None = Field(None, min_length=1, max_length=256)
+    # omitted, not null; an integer, not a bool or a float
+    class_id: StrictInt = Field(None, ge=1, le=2**31 - 1)
+    object_id: str = Field(None, min_length=1, max_length=256)
 
     @model_validator(mode="after")
     def _one(self):
@@ -73,7 +74,10 @@ class ResetRequestModel(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
-        json_schema_extra={"examples": [{}, {"class_id": 4}, {"object_id": "gear-001"}]},
+        json_schema_extra={
+            "examples": [{}, {"class_id": 4}, {"object_id": "gear-001"}],
+            "not": {"required": ["class_id", "object_id"]},
+        },
     )
 
 
@@ -159,6 +163,12 @@ class BodySizeLimit:
         await send({"type": "http.response.body", "body": body})
 
 
+BearerCredentials = Annotated[
+    HTTPAuthorizationCredentials | None,
+    Depends(HTTPBearer(auto_error=False, description="POSEFUSE_API_TOKEN")),
+]
+
+
 def _json_safe(value):
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
@@ -227,11 +237,8 @@ def create_app(daemon) -> FastAPI:
     )
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _serve_docs_locally(app)
-    bearer = HTTPBearer(auto_error=False, description="POSEFUSE_API_TOKEN")
 
-    def require_token(
-        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
-    ) -> None:
+    def require_token(credentials: BearerCredentials) -> None:
         if token is None:
             return
         given = credentials.credentials.encode() if credentials else b""
@@ -281,7 +288,8 @@ def create_app(daemon) -> FastAPI:
         summary="Forget all, a class, or an object",
         dependencies=guard,
         responses={
-            404: _error("No object with this id"),
+            400: _error("The body cannot be parsed (not UTF-8 JSON)"),
+            404: _error("No object with this id, or no class with this id in the catalog"),
             **INVALID,
             **TOO_LARGE,
             **(UNAUTHORIZED if token else {}),
@@ -295,8 +303,8 @@ def create_app(daemon) -> FastAPI:
             raise HTTPException(
                 status_code=404, detail=f"no object {request.object_id!r}"
             ) from None
-        except ValueError as exc:
-            raise HTTPException(status_code=422, detail=str(exc)) from None
+        except ValueError as exc:  # a class the catalog does not have
+            raise HTTPException(status_code=404, detail=str(exc)) from None
 
     @app.get("/stats", summary="Frames received, processed, dropped; decode errors; latency")
     def stats() -> dict:

@@ -49,7 +49,7 @@ def test_reset_and_stats(daemon):
     assert client.post("/reset", json={"object_id": first}).json() == {"removed": 1}
     assert client.post("/reset", json={"object_id": first}).status_code == 404
     assert client.post("/reset", json={"class_id": 1, "object_id": "x"}).status_code == 422
-    assert client.post("/reset", json={"class_id": 99}).status_code == 422
+    assert client.post("/reset", json={"class_id": 99}).status_code == 404
     n_left = len(client.get("/objects").json())
     assert client.post("/reset").json() == {"removed": n_left}
     assert client.get("/objects").json() == []

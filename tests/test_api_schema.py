@@ -1,0 +1,44 @@
+"""The HTTP API against its own OpenAPI document, with schemathesis (all checks, ASGI: no
+server). Every response must be documented, in status, content type and shape; no input may
+give a 5xx. ``/events`` is left out: it is an endless stream, tested in test_api.py."""
+
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, settings
+
+from estimator.tracker import MultiViewEstimator
+from service.api import create_app
+from service.daemon import Daemon
+from service.settings import Settings
+from service.sync import SyncedFrame
+from service.worker import EstimatorWorker
+from sim.scenes import SceneSpec
+from sim.sequences import make_sequence
+
+
+@pytest.fixture(scope="module", params=[None, "t0ken"], ids=["open", "token"])
+def api_schema(request, robi_catalog):
+    seq = make_sequence(robi_catalog, 5, SceneSpec(n_views=3))
+    by_stamp = {v.frame.stamp_ns: v.detections for v in seq.views}
+    worker = EstimatorWorker(MultiViewEstimator(robi_catalog), lambda image, s: by_stamp[s])
+    for v in seq.views:
+        f = v.frame
+        worker.process(SyncedFrame("cam0", f.stamp_ns, None, f.camera, f.T_world_cam))
+    daemon = Daemon(Settings(cell="schema", api_token=request.param), worker)
+    daemon.ready.set()
+    app = create_app(daemon)
+    return schemathesis.openapi.from_asgi("/openapi.json", app)
+
+
+schema = schemathesis.pytest.from_fixture("api_schema").exclude(path="/events")
+
+
+@schema.parametrize()
+@settings(
+    max_examples=60,
+    derandomize=True,
+    deadline=None,
+    suppress_health_check=list(HealthCheck),
+)
+def test_api_conforms_to_its_openapi_document(case):
+    case.call_and_validate()
