@@ -14,3 +14,97 @@ def free_port() -> int:
 def get_json(url: str, timeout: float = 5.0):
     with urllib.request.urlopen(url, timeout=timeout) as r:
         return json.loads(r.read())
+
+
+class ServeProcess:
+    """``posefuse serve`` in its own process on loopback ports, ready when this returns."""
+
+    def __init__(self, *args: str, env: dict | None = None, timeout: float = 180.0):
+        import os
+        import subprocess
+        import sys
+        import time
+
+        self.zenoh_port, self.http_port = free_port(), free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
+        self.base = f"http://127.0.0.1:{self.http_port}"
+        command = [sys.executable, "-m", "cli", "serve", "--http-port", str(self.http_port)]
+        if "--listen" not in args and "--mode" not in args:
+            command += ["--listen", self.endpoint]
+        self.log = open(os.devnull, "w")
+        self.proc = subprocess.Popen(
+            [*command, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        )
+        deadline = time.time() + timeout
+        while True:
+            try:
+                if get_json(f"{self.base}/readyz", 1)["status"] == "ready":
+                    break
+            except OSError:
+                pass
+            if self.proc.poll() is not None or time.time() > deadline:
+                self.kill()
+                raise AssertionError(f"daemon did not start:\n{self.proc.stdout.read()}")
+            time.sleep(0.3)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def stats(self) -> dict:
+        return get_json(f"{self.base}/stats")
+
+    def objects(self) -> list:
+        return get_json(f"{self.base}/objects")
+
+    def rss_mb(self) -> float:
+        import psutil
+
+        return psutil.Process(self.proc.pid).memory_info().rss / 2**20
+
+    def kill(self) -> None:
+        """SIGKILL: no shutdown code runs."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(timeout=20)
+
+    def stop(self) -> None:
+        import subprocess
+
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def wait_until(predicate, timeout: float = 30.0, interval: float = 0.2, what: str = ""):
+    """Poll ``predicate`` until it returns a truthy value; AssertionError on timeout."""
+    import time
+
+    deadline = time.time() + timeout
+    last = None
+    while time.time() < deadline:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out waiting for {what or predicate}: last {last!r}")
+
+
+def zenoh_peer(*connect: str):
+    """A zenoh session (peer, no scouting, no listener) connected to the endpoints."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return zenoh.open(conf)

@@ -1,0 +1,184 @@
+"""Faults as a hostile or unlucky network makes them, against ``posefuse serve`` in its own
+process on loopback: a camera without info, a pose that never comes, stamps in the far future,
+clock steps of an hour either way, a second publisher run, a camera that goes silent,
+decompression bombs, huge valid frames from many camera ids. After each fault, good frames are
+processed, the counters say what happened, and the daemon's RSS stays under RSS_BOUND_MB.
+
+The kill -9 / restart and router restart faults are in test_faults_restart.py.
+"""
+
+import time
+
+import numpy as np
+import pytest
+
+from estimator.camera import Camera
+from service.codec import encode_camera_info, encode_camera_pose, encode_image
+from loopback import ServeProcess, wait_until, zenoh_peer
+
+RSS_BOUND_MB = 1024
+CELL = "faults"
+CAMERA = Camera(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), 320, 240)
+SECOND = 1_000_000_000
+
+
+class FakeCamera:
+    """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given."""
+
+    def __init__(self, session, cam_id: str, seed: int = 0):
+        self.session = session
+        self.cam_id = cam_id
+        self.image = np.random.default_rng(seed).integers(0, 255, (240, 320, 3), np.uint8)
+        self.seq = 0
+
+    def key(self, kind: str) -> str:
+        return f"{CELL}/@v1/cam/{self.cam_id}/{kind}"
+
+    def info(self, stamp: int = 0) -> None:
+        self.session.put(self.key("info"), encode_camera_info(stamp, self.cam_id, CAMERA))
+
+    def pose(self, stamp: int) -> None:
+        T = np.eye(4)
+        T[2, 3] = -0.5
+        self.session.put(self.key("pose"), encode_camera_pose(stamp, self.cam_id, T))
+
+    def image_only(self, stamp: int, image=None) -> None:
+        image = self.image if image is None else image
+        self.seq += 1
+        payload = encode_image(stamp, self.cam_id, image, "jpeg", 80, seq=self.seq)
+        self.session.put(self.key("image"), payload)
+
+    def frame(self, stamp: int) -> None:
+        """A pose at the stamp, then the image."""
+        self.pose(stamp)
+        self.image_only(stamp)
+
+    def frames(self, first: int, n: int, period: int = SECOND // 10, pause: float = 0.05):
+        for k in range(n):
+            self.frame(first + k * period)
+            time.sleep(pause)
+
+
+@pytest.fixture(scope="module")
+def served():
+    daemon = ServeProcess(
+        "--cell",
+        CELL,
+        env={"POSEFUSE_CAMERA_TIMEOUT_S": "3", "POSEFUSE_WAIT_MS": "500"},
+    )
+    try:
+        with zenoh_peer(daemon.endpoint) as session:
+            time.sleep(0.5)
+            yield daemon, session
+    finally:
+        daemon.stop()
+
+
+def _processed(daemon, cam_id: str) -> int:
+    return daemon.stats()["cameras"].get(cam_id, {}).get("processed", 0)
+
+
+def _dropped(daemon) -> dict:
+    return daemon.stats()["frames_dropped"]
+
+
+def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
+    daemon, session = served
+    mute = FakeCamera(session, "mute")
+    mute.image_only(5 * SECOND, np.zeros((8, 8, 3), np.uint8))  # its info never comes
+    dying = FakeCamera(session, "dying")
+    dying.info()
+    dying.pose(5 * SECOND - 10_000_000)
+    dying.image_only(5 * SECOND)  # the pose after it never comes: the camera died
+    good = FakeCamera(session, "good")
+    good.info()
+    good.frames(5 * SECOND + 1, 8)
+    wait_until(lambda: _processed(daemon, "good") == 8, 60, what="8 good frames")
+    dropped = wait_until(
+        lambda: (d := _dropped(daemon)).get("no_info", 0) >= 1 and d.get("no_pose", 0) >= 1 and d,
+        10,
+        what="the stalled frames dropped at their deadline",
+    )
+    stats = daemon.stats()
+    assert dropped["no_info"] == 1 and dropped["no_pose"] == 1
+    assert stats["events"].get("info_requests", 0) >= 1  # the mute camera was asked
+    assert stats["frames_pending"] == 0
+    assert daemon.rss_mb() < RSS_BOUND_MB
+
+
+@pytest.mark.parametrize(
+    "fault",
+    ["far_future_stamp", "clock_minus_1h", "clock_plus_1h", "second_publisher_run"],
+)
+def test_stamp_faults_are_counted_and_recovered_from(served, fault):
+    daemon, session = served
+    cam = FakeCamera(session, f"cam-{fault}")
+    cam.info()
+    t0 = 5000 * SECOND
+    cam.frames(t0, 3)
+    wait_until(lambda: _processed(daemon, cam.cam_id) == 3, 60, what="3 frames before")
+    before = daemon.stats()
+    if fault == "far_future_stamp":
+        cam.frame(2**63 - 1000)
+        after = t0 + SECOND
+    elif fault == "clock_minus_1h":
+        after = t0 - 3600 * SECOND
+    elif fault == "clock_plus_1h":
+        after = t0 + 3600 * SECOND
+    else:  # the same stamps again, as a publisher started a second time sends them
+        after = t0
+    cam.frames(after, 6)
+    wait_until(lambda: _processed(daemon, cam.cam_id) >= 3 + 4, 60, what="frames after the fault")
+    stats = daemon.stats()
+    if fault == "clock_plus_1h":
+        assert _processed(daemon, cam.cam_id) >= 3 + 6  # a jump forward needs nothing
+    else:
+        reanchored = stats["sync_events"]["reanchored"] - before["sync_events"].get("reanchored", 0)
+        assert reanchored == 1
+        late = stats["frames_dropped"]["late"] - before["frames_dropped"].get("late", 0)
+        assert late == 2  # reanchor_frames - 1
+    assert daemon.rss_mb() < RSS_BOUND_MB
+
+
+def test_a_silent_camera_is_forgotten(served):
+    daemon, session = served
+    ghost = FakeCamera(session, "ghost")
+    ghost.info()
+    ghost.frames(7 * SECOND, 2)
+    wait_until(lambda: _processed(daemon, "ghost") == 2, 60, what="ghost frames")
+    forgotten = daemon.stats()["sync_events"].get("cameras_forgotten", 0)
+    wait_until(lambda: "ghost" not in daemon.stats()["cameras"], 10, what="ghost forgotten")
+    assert daemon.stats()["sync_events"]["cameras_forgotten"] > forgotten
+
+
+def test_bombs_and_huge_frames_are_refused_without_decoding(served):
+    from bench.bombs import image_message, jpeg_bomb, png_bomb
+
+    daemon, session = served
+    before = daemon.stats()["decode_errors_by_reason"]
+    bombs = {"png": png_bomb(), "jpeg": jpeg_bomb()}
+    peak = daemon.rss_mb()
+    for k, (encoding, stream) in enumerate(bombs.items()):
+        for declared in ((100, 100), (8192, 8192)):
+            session.put(
+                f"{CELL}/@v1/cam/bomber/image",
+                image_message(stream, encoding, (10 + k) * SECOND, declared, "bomber"),
+            )
+    # valid 8192x8192 frames (a flat JPEG is small on the wire) from 12 camera ids
+    huge = encode_image(11 * SECOND, "big", np.full((8192, 8192, 3), 90, np.uint8), "jpeg", 50)
+    for k in range(12):
+        cam = FakeCamera(session, f"big{k}")
+        cam.info()
+        cam.pose(11 * SECOND)
+        session.put(cam.key("image"), huge)
+        peak = max(peak, daemon.rss_mb())
+    good = FakeCamera(session, "after-bombs")
+    good.info()
+    good.frames(12 * SECOND, 4)
+    wait_until(lambda: _processed(daemon, "after-bombs") == 4, 60, what="good frames after")
+    peak = max(peak, daemon.rss_mb())
+    reasons = daemon.stats()["decode_errors_by_reason"]
+    grown = {k: reasons.get(k, 0) - before.get(k, 0) for k in reasons}
+    assert grown.get("image_header_mismatch", 0) == 2  # the bombs declared 100x100
+    assert grown.get("image_too_large", 0) == 2 + 12  # declared 8192x8192: bombs and frames
+    assert peak < RSS_BOUND_MB, f"RSS reached {peak:.0f} MB"
