@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 import pytest
+from loopback import ServeProcess, wait_until, zenoh_peer
 
 from estimator.camera import Camera
 from service.codec import encode_camera_info, encode_camera_pose, encode_image
-from loopback import ServeProcess, wait_until, zenoh_peer
 
 RSS_BOUND_MB = 1024
 CELL = "faults"
