@@ -72,6 +72,7 @@ class Daemon:
         self.decode = decoders(settings)
         self.ingest_dropped: Counter = Counter()
         self.images_received = 0
+        self._per_camera: Counter = Counter()  # (camera id, processed | errors)
         self.events: Counter = Counter()
         self._queues = [
             queue.Queue(maxsize=settings.ingest_queue) for _ in range(settings.decode_threads)
@@ -264,8 +265,10 @@ class Daemon:
                 updated = self.worker.process(frame)
             except Exception:
                 self.stats.errors += 1
+                self._per_camera[(frame.camera_id, "errors")] += 1
                 log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
                 continue
+            self._per_camera[(frame.camera_id, "processed")] += 1
             if frame.arrival_ns:
                 self.stats.latencies_ms.append((now_ns() - frame.arrival_ns) / 1e6)
             for e in updated:
@@ -386,6 +389,9 @@ class Daemon:
             if reason.startswith("image_"):
                 dropped[reason.removeprefix("image_")] += n
         cameras = self.sync.camera_counters()
+        for cid, c in cameras.items():
+            c["processed"] = self._per_camera[(cid, "processed")]
+            c["errors"] = self._per_camera[(cid, "errors")]
         return {
             "frames_received": self.images_received,
             "frames_processed": s.processed,

@@ -99,7 +99,7 @@ class CameraCounters:
     images: int = 0
     poses: int = 0
     infos: int = 0
-    processed: int = 0
+    synced: int = 0  # handed to the estimator
     lost: Counter = field(default_factory=Counter)  # per kind: sequence numbers skipped
     restarts: Counter = field(default_factory=Counter)  # per kind: sequences begun again
 
@@ -108,7 +108,7 @@ class CameraCounters:
             "images": self.images,
             "poses": self.poses,
             "infos": self.infos,
-            "processed": self.processed,
+            "synced": self.synced,
             "lost": dict(self.lost),
             "restarts": dict(self.restarts),
         }
@@ -304,7 +304,7 @@ class FrameSynchronizer:
             cam = self._cams[cid]
             head = cam.images.pop(0)
             cam.last_out = stamp
-            cam.counters.processed += 1
+            cam.counters.synced += 1
             return SyncedFrame(cid, stamp, head.msg.image, cam.info.camera, T, head.arrival_ns)
 
     def _forget_silent(self, now_ns: int) -> None:

@@ -48,3 +48,19 @@ def default_banks(robi_catalog, tmp_path_factory):
 
     # the session's POSEFUSE_CACHE, so commands run by the tests find them too
     return build_template_banks([robi_catalog[k] for k in robi_catalog])
+
+
+FULL_RES_VIEWS = 4
+
+
+@pytest.fixture(scope="session")
+def full_res_dataset(tmp_path_factory, robi_catalog):
+    """One full-resolution bin scene of 6-8 parts seen from FULL_RES_VIEWS views."""
+    from sim.scenes import SceneSpec
+    from sim.synth import SynthConfig, generate_dataset
+
+    root = tmp_path_factory.mktemp("full") / "bin"
+    config = SynthConfig(
+        n_scenes=1, seed=77, scene=SceneSpec(n_instances=(6, 8), n_views=FULL_RES_VIEWS)
+    )
+    return generate_dataset(robi_catalog, root, config, show_progress=False)

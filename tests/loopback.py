@@ -1,8 +1,15 @@
-"""Helpers of the tests that run processes on loopback: a free port, a JSON GET."""
+"""Helpers of the tests that run processes on loopback: a free port, a JSON GET, a served
+daemon, a Zenoh peer, a camera publishing synthetic frames."""
 
 import json
 import socket
+import time
 import urllib.request
+
+import cv2
+import numpy as np
+
+from service.codec import encode_camera_info, encode_camera_pose, encode_image
 
 
 def free_port() -> int:
@@ -108,3 +115,54 @@ def zenoh_peer(*connect: str):
     conf.insert_json5("listen/endpoints", "[]")
     conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
     return zenoh.open(conf)
+
+
+SECOND = 1_000_000_000
+
+
+class FakeCamera:
+    """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given."""
+
+    def __init__(self, session, cell: str, cam_id: str, seed: int = 0):
+        self.session = session
+        self.cell = cell
+        self.cam_id = cam_id
+        # a smooth random image at the size of the shipped model's camera (small as JPEG)
+        small = np.random.default_rng(seed).integers(0, 255, (9, 16, 3), np.uint8)
+        self.image = cv2.resize(small, (1280, 720), interpolation=cv2.INTER_CUBIC)
+        self.seq = 0
+
+    def key(self, kind: str) -> str:
+        return f"{self.cell}/@v1/cam/{self.cam_id}/{kind}"
+
+    def info(self, stamp: int = 0) -> None:
+        self.session.put(self.key("info"), encode_camera_info(stamp, self.cam_id, _camera()))
+
+    def pose(self, stamp: int) -> None:
+        T = np.eye(4)
+        T[2, 3] = -0.5
+        self.session.put(self.key("pose"), encode_camera_pose(stamp, self.cam_id, T))
+
+    def image_only(self, stamp: int, image=None) -> None:
+        image = self.image if image is None else image
+        self.seq += 1
+        payload = encode_image(stamp, self.cam_id, image, "jpeg", 80, seq=self.seq)
+        self.session.put(self.key("image"), payload)
+
+    def frame(self, stamp: int) -> None:
+        """A pose at the stamp, then the image."""
+        self.pose(stamp)
+        self.image_only(stamp)
+
+    def frames(self, first: int, n: int, period: int = SECOND // 10, pause: float = 0.05):
+        for k in range(n):
+            self.frame(first + k * period)
+            time.sleep(pause)
+
+
+def _camera():
+    import numpy as np
+
+    from estimator.camera import Camera
+
+    return Camera(np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]]), 1280, 720)

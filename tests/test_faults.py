@@ -11,52 +11,12 @@ import time
 
 import numpy as np
 import pytest
-from loopback import ServeProcess, wait_until, zenoh_peer
+from loopback import SECOND, FakeCamera, ServeProcess, wait_until, zenoh_peer
 
-from estimator.camera import Camera
-from service.codec import encode_camera_info, encode_camera_pose, encode_image
+from service.codec import encode_image
 
 RSS_BOUND_MB = 1024
 CELL = "faults"
-CAMERA = Camera(np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]]), 320, 240)
-SECOND = 1_000_000_000
-
-
-class FakeCamera:
-    """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given."""
-
-    def __init__(self, session, cam_id: str, seed: int = 0):
-        self.session = session
-        self.cam_id = cam_id
-        self.image = np.random.default_rng(seed).integers(0, 255, (240, 320, 3), np.uint8)
-        self.seq = 0
-
-    def key(self, kind: str) -> str:
-        return f"{CELL}/@v1/cam/{self.cam_id}/{kind}"
-
-    def info(self, stamp: int = 0) -> None:
-        self.session.put(self.key("info"), encode_camera_info(stamp, self.cam_id, CAMERA))
-
-    def pose(self, stamp: int) -> None:
-        T = np.eye(4)
-        T[2, 3] = -0.5
-        self.session.put(self.key("pose"), encode_camera_pose(stamp, self.cam_id, T))
-
-    def image_only(self, stamp: int, image=None) -> None:
-        image = self.image if image is None else image
-        self.seq += 1
-        payload = encode_image(stamp, self.cam_id, image, "jpeg", 80, seq=self.seq)
-        self.session.put(self.key("image"), payload)
-
-    def frame(self, stamp: int) -> None:
-        """A pose at the stamp, then the image."""
-        self.pose(stamp)
-        self.image_only(stamp)
-
-    def frames(self, first: int, n: int, period: int = SECOND // 10, pause: float = 0.05):
-        for k in range(n):
-            self.frame(first + k * period)
-            time.sleep(pause)
 
 
 @pytest.fixture(scope="module")
@@ -84,13 +44,13 @@ def _dropped(daemon) -> dict:
 
 def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
     daemon, session = served
-    mute = FakeCamera(session, "mute")
+    mute = FakeCamera(session, CELL, "mute")
     mute.image_only(5 * SECOND, np.zeros((8, 8, 3), np.uint8))  # its info never comes
-    dying = FakeCamera(session, "dying")
+    dying = FakeCamera(session, CELL, "dying")
     dying.info()
     dying.pose(5 * SECOND - 10_000_000)
     dying.image_only(5 * SECOND)  # the pose after it never comes: the camera died
-    good = FakeCamera(session, "good")
+    good = FakeCamera(session, CELL, "good")
     good.info()
     good.frames(5 * SECOND + 1, 8)
     wait_until(lambda: _processed(daemon, "good") == 8, 60, what="8 good frames")
@@ -102,7 +62,7 @@ def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
     stats = daemon.stats()
     assert dropped["no_info"] == 1 and dropped["no_pose"] == 1
     assert stats["events"].get("info_requests", 0) >= 1  # the mute camera was asked
-    assert stats["frames_pending"] == 0
+    assert stats["frames_pending"] == 0 and stats["processing_errors"] == 0
     assert daemon.rss_mb() < RSS_BOUND_MB
 
 
@@ -112,7 +72,7 @@ def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
 )
 def test_stamp_faults_are_counted_and_recovered_from(served, fault):
     daemon, session = served
-    cam = FakeCamera(session, f"cam-{fault}")
+    cam = FakeCamera(session, CELL, f"cam-{fault}")
     cam.info()
     t0 = 5000 * SECOND
     cam.frames(t0, 3)
@@ -137,12 +97,13 @@ def test_stamp_faults_are_counted_and_recovered_from(served, fault):
         assert reanchored == 1
         late = stats["frames_dropped"]["late"] - before["frames_dropped"].get("late", 0)
         assert late == 2  # reanchor_frames - 1
+    assert stats["processing_errors"] == 0
     assert daemon.rss_mb() < RSS_BOUND_MB
 
 
 def test_a_silent_camera_is_forgotten(served):
     daemon, session = served
-    ghost = FakeCamera(session, "ghost")
+    ghost = FakeCamera(session, CELL, "ghost")
     ghost.info()
     ghost.frames(7 * SECOND, 2)
     wait_until(lambda: _processed(daemon, "ghost") == 2, 60, what="ghost frames")
@@ -167,12 +128,12 @@ def test_bombs_and_huge_frames_are_refused_without_decoding(served):
     # valid 8192x8192 frames (a flat JPEG is small on the wire) from 12 camera ids
     huge = encode_image(11 * SECOND, "big", np.full((8192, 8192, 3), 90, np.uint8), "jpeg", 50)
     for k in range(12):
-        cam = FakeCamera(session, f"big{k}")
+        cam = FakeCamera(session, CELL, f"big{k}")
         cam.info()
         cam.pose(11 * SECOND)
         session.put(cam.key("image"), huge)
         peak = max(peak, daemon.rss_mb())
-    good = FakeCamera(session, "after-bombs")
+    good = FakeCamera(session, CELL, "after-bombs")
     good.info()
     good.frames(12 * SECOND, 4)
     wait_until(lambda: _processed(daemon, "after-bombs") == 4, 60, what="good frames after")
@@ -182,3 +143,4 @@ def test_bombs_and_huge_frames_are_refused_without_decoding(served):
     assert grown.get("image_header_mismatch", 0) == 2  # the bombs declared 100x100
     assert grown.get("image_too_large", 0) == 2 + 12  # declared 8192x8192: bombs and frames
     assert peak < RSS_BOUND_MB, f"RSS reached {peak:.0f} MB"
+    assert daemon.stats()["processing_errors"] == 0

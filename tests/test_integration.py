@@ -15,7 +15,6 @@ import urllib.request
 
 import msgpack
 import numpy as np
-import pytest
 from loopback import free_port, get_json
 
 from clients.camera import scene_messages
@@ -37,16 +36,6 @@ def _post(url, body):
     )
     with urllib.request.urlopen(req, timeout=5) as r:
         return json.loads(r.read())
-
-
-@pytest.fixture(scope="module")
-def full_res_dataset(tmp_path_factory, robi_catalog):
-    from sim.scenes import SceneSpec
-    from sim.synth import SynthConfig, generate_dataset
-
-    root = tmp_path_factory.mktemp("full") / "bin"
-    config = SynthConfig(n_scenes=1, seed=77, scene=SceneSpec(n_instances=(6, 8), n_views=N_VIEWS))
-    return generate_dataset(robi_catalog, root, config, show_progress=False)
 
 
 def _offline(dataset, messages):

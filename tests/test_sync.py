@@ -176,4 +176,4 @@ def test_sequence_gaps_and_restarts_are_counted_per_camera():
     counters = s.camera_counters()["a"]
     assert counters["lost"] == {"image": 2, "pose": 9}
     assert counters["restarts"] == {"image": 1}
-    assert counters["images"] == 7 and counters["poses"] == 2
+    assert counters["images"] == 7 and counters["poses"] == 2 and counters["synced"] == 0
