@@ -103,6 +103,7 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
                 rate=args.rate,
                 handled=handled,
                 progress=lambda: bar.update(1),
+                token=settings.api_token.get_secret_value() if settings.api_token else None,
             )
     print(f"published {sent} messages of {args.file}")
     return 0

@@ -116,6 +116,7 @@ def replay_live(
     handled=None,
     progress=None,
     timeout_s: float = 30.0,
+    token: str | None = None,
 ) -> int:
     """Publish recorded (log_time_ns, key, payload) over Zenoh.
 
@@ -138,7 +139,8 @@ def replay_live(
             if delay > 0:
                 time.sleep(delay)
         if key == keys.reset:
-            for _ in session.get(keys.reset, payload=payload, timeout=timeout_s):
+            extra = {} if token is None else {"attachment": token.encode()}
+            for _ in session.get(keys.reset, payload=payload, timeout=timeout_s, **extra):
                 pass
             sent += 1
             continue

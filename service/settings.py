@@ -52,7 +52,7 @@ class Settings(BaseSettings):
     max_image_pixels: int = 4096 * 4096  # checked on the declared and the header size
     decode_threads: int = 2  # images are decoded off the transport's threads
     ingest_queue: int = 16  # messages waiting for a decoder, per decoder thread
-    image_queue: int = 4  # frames buffered per camera: the latest win when behind
+    image_queue: int = 2  # frames buffered per camera: the latest win when behind
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
     max_cameras: int = 16
     camera_timeout_s: float = 60.0  # a silent camera is forgotten after this

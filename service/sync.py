@@ -55,7 +55,7 @@ class SyncedFrame:
 
 @dataclass(frozen=True)
 class SyncConfig:
-    image_queue: int = 4  # images buffered per camera
+    image_queue: int = 2  # images buffered per camera (more only adds latency when behind)
     pose_buffer: int = 200  # poses kept per camera for interpolation
     max_pose_gap_ns: int = 200_000_000  # poses further apart are not interpolated
     exact_tolerance_ns: int = 1_000_000  # a pose this close to the stamp is used as is
