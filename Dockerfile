@@ -15,5 +15,9 @@ COPY models models
 RUN pip install --no-cache-dir -e .
 # template banks are built at start-up into this cache; mount a volume to keep them
 ENV POSEFUSE_CACHE=/cache
+# few malloc arenas: freed frame buffers go back to the system instead of staying per thread
+ENV MALLOC_ARENA_MAX=2
+# the HTTP API listens on all of the container's interfaces; docker-compose.yml publishes it on
+# the host's loopback only (docs/security.md says how to expose it, with a token)
 EXPOSE 8000
 CMD ["posefuse", "serve", "--mode", "client", "--connect", "tcp/router:7447", "--http-host", "0.0.0.0"]

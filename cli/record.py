@@ -8,7 +8,9 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -32,7 +34,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from estimator.objects import load_catalog
     from service.foxglove import FoxgloveMirror
     from service.keys import Keys
-    from service.recording import Recorder
+    from service.recording import Recorder, RecordingFull
     from service.settings import zenoh_config
 
     settings = _settings(args)
@@ -53,18 +55,34 @@ def _cmd_record(args: argparse.Namespace) -> int:
             recorder.write(key, payload, log_time)
             counts[key] = counts.get(key, 0) + 1
 
-    with Recorder(args.out, metadata={"cell": settings.cell}, mirror=mirror) as recorder:
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())  # as Ctrl-C: the file is finished
+    full: RecordingFull | None = None
+    recorder = Recorder(args.out, metadata={"cell": settings.cell}, mirror=mirror)
+    try:
         with zenoh.open(zenoh_config(settings)) as session:
             session.declare_subscriber(f"{keys.root}/**", on_sample)
             print(f"recording {keys.root}/** to {args.out}; Ctrl-C to stop", flush=True)
+            end = time.monotonic() + args.duration if args.duration else None
             try:
-                end = time.monotonic() + args.duration if args.duration else None
-                while end is None or time.monotonic() < end:
+                while not stop.is_set() and (end is None or time.monotonic() < end):
                     drain(recorder)
                     time.sleep(0.05)
             except KeyboardInterrupt:
                 pass
         drain(recorder)
+    except RecordingFull as exc:
+        full = exc
+    finally:
+        footer = recorder.close()
+    if full is not None:
+        print(
+            f"{args.out}: writing failed ({full.cause.strerror or full.cause}) after "
+            f"{recorder.in_file} messages; "
+            + ("the file is finished and readable" if footer else "no footer could be written"),
+            file=sys.stderr,
+        )
+        return 1
     print(f"wrote {sum(counts.values())} messages on {len(counts)} keys to {args.out}")
     return 0
 

@@ -15,7 +15,11 @@ def test_compose_file_parses_and_wires_the_cell():
     assert image.startswith("eclipse/zenoh:") and not image.endswith(":latest")
     est = " ".join(services["estimator"]["command"])
     assert "posefuse serve" in est and "--mode client" in est and "tcp/router:7447" in est
-    assert "8000:8000" in services["estimator"]["ports"]
+    # published on the host's loopback only: exposing them is a decision (docs/security.md)
+    assert services["estimator"]["ports"] == ["127.0.0.1:8000:8000"]
+    assert services["router"]["ports"] == ["127.0.0.1:7447:7447"]
+    env = services["estimator"]["environment"]
+    assert "POSEFUSE_API_TOKEN" in env and env["POSEFUSE_STATE_DIR"] == "/state"
     cam = " ".join(services["camera"]["command"])
     assert "posefuse publish" in cam and "tcp/router:7447" in cam
     assert "router" in services["estimator"]["depends_on"]
