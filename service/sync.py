@@ -314,7 +314,8 @@ class FrameSynchronizer:
             if now_ns - cam.last_seen > self.config.camera_timeout_ns
         ]:
             cam = self._cams.pop(cid)
-            self.dropped["camera_forgotten"] += len(cam.images)
+            if cam.images:
+                self.dropped["camera_forgotten"] += len(cam.images)
             self.events["cameras_forgotten"] += 1
 
     # ------------------------------------------------------------------ introspection

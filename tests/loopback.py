@@ -91,8 +91,11 @@ class ServeProcess:
                 self.proc.wait()
 
 
-def wait_until(predicate, timeout: float = 30.0, interval: float = 0.2, what: str = ""):
-    """Poll ``predicate`` until it returns a truthy value; AssertionError on timeout."""
+def wait_until(
+    predicate, timeout: float = 30.0, interval: float = 0.2, what: str = "", context=None
+):
+    """Poll ``predicate`` until it returns a truthy value; AssertionError on timeout, with
+    ``context()`` (e.g. the daemon's stats) in the message."""
     import time
 
     deadline = time.time() + timeout
@@ -102,7 +105,8 @@ def wait_until(predicate, timeout: float = 30.0, interval: float = 0.2, what: st
         if last:
             return last
         time.sleep(interval)
-    raise AssertionError(f"timed out waiting for {what or predicate}: last {last!r}")
+    extra = f"; {context()!r}" if context is not None else ""
+    raise AssertionError(f"timed out waiting for {what or predicate}: last {last!r}{extra}")
 
 
 def zenoh_peer(*connect: str):
@@ -154,10 +158,24 @@ class FakeCamera:
         self.pose(stamp)
         self.image_only(stamp)
 
-    def frames(self, first: int, n: int, period: int = SECOND // 10, pause: float = 0.05):
+    def frames(
+        self,
+        first: int,
+        n: int,
+        period: int = SECOND // 10,
+        pause: float = 0.05,
+        daemon=None,
+    ):
+        """n frames ``period`` apart in stamp time; with ``daemon`` (a ServeProcess), each one
+        after the previous was handled (a camera the daemon keeps up with: none dropped as
+        queue_full), else ``pause`` seconds apart."""
         for k in range(n):
+            handled = daemon.stats()["frames_handled"] if daemon is not None else 0
             self.frame(first + k * period)
-            time.sleep(pause)
+            if daemon is not None:
+                wait_until(lambda h=handled: daemon.stats()["frames_handled"] > h, 30)
+            else:
+                time.sleep(pause)
 
 
 def _camera():

