@@ -135,12 +135,20 @@ class FakeCamera:
         small = np.random.default_rng(seed).integers(0, 255, (9, 16, 3), np.uint8)
         self.image = cv2.resize(small, (1280, 720), interpolation=cv2.INTER_CUBIC)
         self.seq = 0
+        self.info_server = None
 
     def key(self, kind: str) -> str:
         return f"{self.cell}/@v1/cam/{self.cam_id}/{kind}"
 
     def info(self, stamp: int = 0) -> None:
-        self.session.put(self.key("info"), encode_camera_info(stamp, self.cam_id, _camera()))
+        """Publish the camera info, and answer the daemon's requests for it from now on."""
+        from clients.camera import InfoServer
+
+        payload = encode_camera_info(stamp, self.cam_id, _camera())
+        if self.info_server is None:
+            self.info_server = InfoServer(self.session)
+        self.info_server.publish(self.key("info"), payload)
+        self.session.put(self.key("info"), payload)
 
     def pose(self, stamp: int) -> None:
         T = np.eye(4)
@@ -173,7 +181,12 @@ class FakeCamera:
             handled = daemon.stats()["frames_handled"] if daemon is not None else 0
             self.frame(first + k * period)
             if daemon is not None:
-                wait_until(lambda h=handled: daemon.stats()["frames_handled"] > h, 30)
+                wait_until(
+                    lambda h=handled: daemon.stats()["frames_handled"] > h,
+                    30,
+                    what=f"frame {k} of {self.cam_id} handled",
+                    context=daemon.stats,
+                )
             else:
                 time.sleep(pause)
 

@@ -53,7 +53,9 @@ def test_a_camera_without_info_and_one_without_pose_block_no_one(served):
     good = FakeCamera(session, CELL, "good")
     good.info()
     good.frames(5 * SECOND + 1, 8, daemon=daemon)
-    wait_until(lambda: _processed(daemon, "good") == 8, 60, what="8 good frames")
+    wait_until(
+        lambda: _processed(daemon, "good") == 8, 60, what="8 good frames", context=daemon.stats
+    )
     dropped = wait_until(
         lambda: (d := _dropped(daemon)).get("no_info", 0) >= 1 and d.get("no_pose", 0) >= 1 and d,
         10,
