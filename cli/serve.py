@@ -113,7 +113,15 @@ def _cmd_publish(args: argparse.Namespace) -> int:
         )
     )
     with zenoh.open(zenoh_config(settings)) as session:
-        time.sleep(args.warmup)  # let the transport connect before the first put
+        # wait (at most --warmup s) until a subscriber of the images is connected: frames put
+        # before that would be lost
+        probe = session.declare_publisher(f"{settings.cell}/@v1/cam/{args.camera}/image")
+        deadline = time.monotonic() + args.warmup
+        while not probe.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if not probe.matching_status.matching:
+            print(f"no subscriber of {probe.key_expr} after {args.warmup:g} s: publishing anyway")
+        probe.undeclare()
         with tqdm(total=len(messages), desc="publish", unit="msg") as bar:
             n = publish(session, messages, realtime=True, progress=lambda _k: bar.update(1))
         time.sleep(0.5)
@@ -223,7 +231,10 @@ def register(subparsers) -> None:
     p.add_argument("--camera", default="cam0", help="camera id in the keys")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose timing jitter")
     p.add_argument(
-        "--warmup", type=float, default=1.0, help="seconds to connect before the first message"
+        "--warmup",
+        type=float,
+        default=10.0,
+        help="seconds to wait at most for a subscriber before the first message",
     )
     p.set_defaults(func=_cmd_publish)
 
