@@ -248,6 +248,16 @@ def decode_image(
     return ImageMsg(stamp, frame_id, image, seq)
 
 
+def decoders(max_bytes: int = DEFAULT_MAX_PAYLOAD, max_pixels: int = DEFAULT_MAX_PIXELS) -> dict:
+    """The decoding function of each camera key kind (``info``, ``image``, ``pose``), with
+    these limits: payload bytes -> message, or DecodeError."""
+    return {
+        "info": lambda p: decode_camera_info(p, max_bytes),
+        "image": lambda p: decode_image(p, max_bytes, max_pixels),
+        "pose": lambda p: decode_camera_pose(p, max_bytes),
+    }
+
+
 def decode_image_compressed(
     payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD
 ) -> tuple[int, str, str, bytes]:

@@ -31,10 +31,8 @@ from collections import Counter
 
 from service.codec import (
     DecodeError,
-    decode_camera_info,
-    decode_camera_pose,
-    decode_image,
     decode_reset,
+    decoders,
     encode_estimate,
     encode_estimates,
     estimate_to_dict,
@@ -47,20 +45,6 @@ from service.worker import EstimatorWorker, now_ns
 log = logging.getLogger("posefuse.daemon")
 
 
-def decoders(settings: Settings | None = None) -> dict:
-    """Decoding function per camera key kind, with the settings' limits."""
-    max_bytes = settings.max_payload_bytes if settings else 16 * 1024 * 1024
-    max_pixels = settings.max_image_pixels if settings else 4096 * 4096
-    return {
-        "info": lambda p: decode_camera_info(p, max_bytes),
-        "image": lambda p: decode_image(p, max_bytes, max_pixels),
-        "pose": lambda p: decode_camera_pose(p, max_bytes),
-    }
-
-
-DECODERS = decoders()
-
-
 class Daemon:
     def __init__(self, settings: Settings, worker: EstimatorWorker, state_store=None):
         self.settings = settings
@@ -69,7 +53,7 @@ class Daemon:
         self.sync = FrameSynchronizer(sync_config(settings))
         self.stats = worker.stats
         self.stats.max_keys = 3 * settings.max_cameras + 8
-        self.decode = decoders(settings)
+        self.decode = decoders(settings.max_payload_bytes, settings.max_image_pixels)
         self.ingest_dropped: Counter = Counter()
         self.images_received = 0
         self._per_camera: Counter = Counter()  # (camera id, processed | errors)

@@ -11,10 +11,8 @@ from pathlib import Path
 
 from service.codec import (
     DecodeError,
-    decode_camera_info,
-    decode_camera_pose,
-    decode_image,
     decode_reset,
+    decoders,
     encode_estimate,
     estimate_to_dict,
 )
@@ -54,6 +52,7 @@ def replay_offline(
     """
     keys = Keys(cell)
     sync = sync or FrameSynchronizer()
+    decode = decoders(max_payload_bytes, max_image_pixels)
     result = ReplayResult()
     for log_time, key, payload in messages:
         if recorder is not None:
@@ -77,12 +76,7 @@ def replay_offline(
             continue  # outputs and other cells' keys in a recording are not inputs
         cam_id, kind = parsed
         try:
-            if kind == "image":
-                msg = decode_image(payload, max_payload_bytes, max_image_pixels)
-            elif kind == "pose":
-                msg = decode_camera_pose(payload, max_payload_bytes)
-            else:
-                msg = decode_camera_info(payload, max_payload_bytes)
+            msg = decode[kind](payload)
         except DecodeError as exc:
             worker.stats.count(worker.stats.decode_errors, key)
             worker.stats.count(worker.stats.decode_reasons, f"{kind}_{exc.code}")
