@@ -40,8 +40,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     catalog = load_catalog(settings.catalog)
     detect = make_detector(settings, catalog)
     estimator = MultiViewEstimator(catalog, show_progress=True)
-    for obj_id in catalog:  # templates before the first frame, not during it
-        estimator.matcher(obj_id)
+    estimator.warm_up()  # templates and size ratios before the first frame, not during it
     store = None
     if settings.state_dir is not None:
         from service.state import StateStore, catalog_fingerprint

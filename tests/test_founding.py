@@ -2,8 +2,16 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from estimator.founding import FoundingConfig, HeldDetection, choose_pairs, triangulate_pair
+from estimator.founding import (
+    FoundingConfig,
+    HeldDetection,
+    choose_pairs,
+    pair_residual_lower_bounds,
+    triangulate_pair,
+)
 from estimator.frontend.detection import Detection
 from estimator.merging import MergeCandidate, MergeConfig, merge_pairs
 from estimator.splitting import SplitConfig, outlier_views
@@ -67,6 +75,46 @@ def test_rays_that_miss_or_boxes_that_contradict_are_gated():
     # a box truncated by the border (NaN) is not checked
     d = _held(_T_cam_world(0.15), p, 2, box_scale=np.nan)
     assert triangulate_pair(a, d, FoundingConfig()) is not None
+
+
+_coord = st.floats(-0.2, 0.2)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    cam_a=st.floats(-0.4, 0.4),
+    cam_b=st.floats(-0.4, 0.4),
+    p=st.tuples(_coord, _coord, st.floats(-0.05, 0.1)),
+    offset=st.tuples(_coord, _coord, _coord),
+    near=st.floats(0.0, 1.0),
+    box_a=st.floats(0.3, 3.0),
+    box_b=st.floats(0.3, 3.0),
+    std=st.floats(0.5, 8.0),
+)
+def test_the_pair_bound_never_rejects_a_pair_that_triangulation_accepts(
+    cam_a, cam_b, p, offset, near, box_a, box_b, std
+):
+    """The cheap bound is below the gate for every pair triangulate_pair founds: skipping the
+    pairs above it changes no outcome."""
+    config = FoundingConfig()
+    p = np.array(p)
+    q = p + near**3 * np.array(offset)  # the second view's part: often close, sometimes far
+    a = _held(_T_cam_world(cam_a), p, 1, box_scale=box_a)
+    b = _held(_T_cam_world(cam_b, target=(0.02, 0.01, 0.0)), q, 2, box_scale=box_b)
+    cov = np.diag([std, 1.0]) ** 2
+    a = HeldDetection(a.obj_id, 10, 1, a.T_cam_world, K, a.uv, cov, a.box_depth, 0)
+    pair = triangulate_pair(a, b, config)
+    bound = pair_residual_lower_bounds([a], [b], config)[0, 0]
+    assert bound >= 0
+    if pair is not None and not pair.static:
+        assert bound <= min(pair.cost, config.pair_gate_chi2) + 1e-9
+
+
+def test_the_pair_bound_rejects_parts_far_apart():
+    config = FoundingConfig()
+    a = _held(_T_cam_world(-0.15), np.zeros(3), 1)
+    b = _held(_T_cam_world(0.15), np.array([0.0, 0.05, 0.0]), 2)  # 5 cm off the first ray
+    assert pair_residual_lower_bounds([a], [b], config)[0, 0] > config.pair_gate_chi2
 
 
 def test_pairs_are_chosen_jointly_and_never_within_one_view():

@@ -1,0 +1,197 @@
+"""Where the time of one frame goes, stage by stage, in the daemon's own code path.
+
+python -m bench.profile_frame --dataset DIR --scene N [--scene M ...] [--repeat 3]
+
+For each scene, its views (1280x720, JPEG-encoded as a camera would send them) go through
+what the daemon does with a frame: decode, network, voting, then the estimator (association,
+translation, founding/merging, re-crop, template scoring, mixture), encode of every updated
+estimate and a Zenoh put of each on a session of its own. The stages inside the estimator are
+timed by wrapping the functions that implement them (``estimator.tracker`` and
+``estimator.rotation`` names), so the profile measures the code as it runs in the service.
+Each scene is run ``--repeat`` times with a fresh estimator; the table gives the mean time per
+frame of every stage and the median and p95 of the whole frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from collections import defaultdict
+
+import numpy as np
+
+STAGES = (
+    "decode",
+    "network",
+    "voting",
+    "association",
+    "translation",
+    "founding+merging",
+    "re-crop",
+    "template scoring",
+    "mixture",
+    "estimator (rest)",
+    "encode",
+    "publish",
+)
+
+
+class StageTimer:
+    """Accumulates the wall time of wrapped functions per stage (outermost call only)."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = defaultdict(float)
+        self._depth = 0
+
+    def wrap(self, fn, stage: str):
+        def timed(*args, **kwargs):
+            if self._depth:
+                return fn(*args, **kwargs)
+            self._depth += 1
+            start = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.seconds[stage] += time.perf_counter() - start
+                self._depth -= 1
+
+        return timed
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] += time.perf_counter() - start
+
+
+@contextlib.contextmanager
+def instrumented(timer: StageTimer):
+    """Wrap the estimator's stage functions with ``timer`` for the duration of the block."""
+    import estimator.rotation as rotation
+    import estimator.tracker as tracker
+    from estimator.mixture import RotationMixture
+
+    patches = [
+        (tracker, "cost_matrix", "association"),
+        (tracker, "assign", "association"),
+        (tracker, "estimate_translation", "translation"),
+        (tracker, "marginalize_oldest", "translation"),
+        (tracker, "choose_pairs", "founding+merging"),
+        (tracker, "triangulate_pair", "founding+merging"),
+        (tracker, "merge_pairs", "founding+merging"),
+        (tracker, "outlier_views", "founding+merging"),
+        (rotation, "crop_roi", "re-crop"),
+        (rotation.RotationMatcher, "scores", "template scoring"),
+        (rotation, "select_hypotheses", "template scoring"),
+        (RotationMixture, "add", "mixture"),
+    ]
+    saved = [(owner, name, getattr(owner, name)) for owner, name, _ in patches]
+    try:
+        for owner, name, stage in patches:
+            setattr(owner, name, timer.wrap(getattr(owner, name), stage))
+        yield
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+
+
+def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int) -> dict:
+    """Per-stage mean ms per frame and whole-frame median/p95 over the scenes' views."""
+    import zenoh
+
+    from estimator.dataset import load_dataset
+    from estimator.frontend.network import NetworkFrontend, preprocess
+    from estimator.tracker import Frame, MultiViewEstimator
+    from service.codec import decoders, encode_estimate, encode_image
+    from service.resources import DEFAULT_MODEL
+
+    ds = load_dataset(dataset_dir)
+    network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads)
+    decode = decoders()["image"]
+    estimator = MultiViewEstimator(ds.catalog)
+    estimator.warm_up()  # as posefuse serve does before its first frame
+    frames = []
+    n_objects = []
+    for sid in scene_ids:
+        scene = ds.scene(sid)
+        views = [scene.view(i) for i in scene.im_ids]
+        n_objects += [len(v.gts) for v in views]
+        frames.append(
+            [(v, encode_image(v.im_id, "cam0", scene.load_rgb(v.im_id), "jpeg")) for v in views]
+        )
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    totals, per_stage = [], defaultdict(list)
+    with zenoh.open(conf) as session:
+        network.detect(decode(frames[0][0][1]).image)  # warm-up
+        for _ in range(repeat):
+            for views in frames:
+                estimator.reset()  # a new scene: no tracks, the warm caches kept
+                for view, payload in views:
+                    timer = StageTimer()
+                    start = time.perf_counter()
+                    with timer.stage("decode"):
+                        image = decode(payload).image
+                    with timer.stage("network"):
+                        network.session.run(
+                            None, {network.input_name: preprocess(image, network.card)}
+                        )
+                    # detect() runs the network again; its own share is taken off below
+                    t0 = time.perf_counter()
+                    detections = network.detect(image, stamp_seed=view.im_id)
+                    timer.seconds["voting"] += time.perf_counter() - t0 - timer.seconds["network"]
+                    t_est = time.perf_counter()
+                    with instrumented(timer):
+                        updated = estimator.update(
+                            Frame(view.im_id, view.camera, view.T_world_cam, image), detections
+                        )
+                    inner = sum(
+                        timer.seconds[s]
+                        for s in STAGES[3:9]  # association .. mixture
+                    )
+                    timer.seconds["estimator (rest)"] += time.perf_counter() - t_est - inner
+                    with timer.stage("encode"):
+                        payloads = [(e.object_id, encode_estimate(e)) for e in updated]
+                    with timer.stage("publish"):
+                        for oid, data in payloads:
+                            session.put(f"profile/@v1/objects/{oid}", data)
+                    # the network ran twice above: the frame's time counts it once
+                    totals.append(time.perf_counter() - start - timer.seconds["network"])
+                    for s in STAGES:
+                        per_stage[s].append(timer.seconds.get(s, 0.0))
+    return {
+        "frames": len(totals),
+        "objects_per_view": float(np.mean(n_objects)),
+        "stages_ms": {s: 1000 * float(np.mean(v)) for s, v in per_stage.items()},
+        "total_p50_ms": 1000 * float(np.median(totals)),
+        "total_p95_ms": 1000 * float(np.percentile(totals, 95)),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", required=True, help="BOP dataset folder")
+    parser.add_argument("--scene", type=int, action="append", required=True, help="scene id")
+    parser.add_argument("--repeat", type=int, default=3, help="runs of each scene")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    args = parser.parse_args(argv)
+    r = profile(args.dataset, args.scene, args.repeat, args.threads)
+    print(
+        f"{args.dataset} scenes {args.scene}: {r['frames']} frames, "
+        f"{r['objects_per_view']:.1f} objects per view"
+    )
+    print(f"{'stage':<20} {'ms/frame':>9}")
+    for s in STAGES:
+        print(f"{s:<20} {r['stages_ms'][s]:>9.1f}")
+    print(f"{'frame p50':<20} {r['total_p50_ms']:>9.1f}")
+    print(f"{'frame p95':<20} {r['total_p95_ms']:>9.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
