@@ -10,8 +10,12 @@ worker thread.
   message is counted by key and by reason, and logged, never raised.
 - A camera whose images come without camera info is asked for it: a get on its info key
   (``clients/camera.py`` answers it), at most every ``info_request_s``; at start, every camera.
-- One worker thread takes synchronised frames, runs :class:`~service.worker.EstimatorWorker`
-  and publishes every updated ObjectEstimate on ``{cell}/@v1/objects/{object_id}``.
+- A two-stage pipeline keeps both cores busy: the front-end thread takes synchronised frames
+  and runs the network and voting (:meth:`~service.worker.EstimatorWorker.detections`) while
+  the worker thread fuses the previous frame (:meth:`~service.worker.EstimatorWorker.fuse`)
+  and publishes every updated ObjectEstimate on ``{cell}/@v1/objects/{object_id}``. One
+  thread per stage and a one-frame queue between them: frames reach the estimator in the
+  order they left the synchroniser, so the estimates do not depend on timing.
 - Queryables answer ``estimator/state`` and ``estimator/reset`` (with ``api_token`` set, a
   reset needs the token as the query's attachment); a liveliness token ``estimator/alive``
   says the daemon is up.
@@ -62,6 +66,7 @@ class Daemon:
             queue.Queue(maxsize=settings.ingest_queue) for _ in range(settings.decode_threads)
         ]
         self._info_asked: dict[str, float] = {}
+        self._fused: queue.Queue = queue.Queue(maxsize=1)  # front end -> estimator
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._listeners: list[queue.Queue] = []
@@ -238,7 +243,8 @@ class Daemon:
                     pass  # a slow reader misses updates rather than stalling the worker
 
     # ------------------------------------------------------------------ worker
-    def _work(self, session) -> None:
+    def _front_end(self) -> None:
+        """Stage 1: synchronised frames through the network; hands them to the estimator."""
         while not self._stop.is_set():
             frame = self.sync.pop(now_ns())
             if frame is None:
@@ -246,21 +252,46 @@ class Daemon:
                 self._wake.clear()
                 continue
             try:
-                updated = self.worker.process(frame)
+                detections = self.worker.detections(frame)
             except Exception:
-                self.stats.errors += 1
-                self._per_camera[(frame.camera_id, "errors")] += 1
-                log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
+                self._failed(frame)
                 continue
-            self._per_camera[(frame.camera_id, "processed")] += 1
-            if frame.arrival_ns:
-                self.stats.latencies_ms.append((now_ns() - frame.arrival_ns) / 1e6)
-            for e in updated:
+            while not self._stop.is_set():
                 try:
-                    session.put(self.keys.object(e.object_id), encode_estimate(e))
-                except Exception:
-                    log.exception("publishing %s failed", e.object_id)
-                self._notify(estimate_to_dict(e))
+                    self._fused.put((frame, detections), timeout=0.2)
+                    break
+                except queue.Full:
+                    continue
+
+    def _work(self, session) -> None:
+        """Stage 2: the estimator's update, then publish."""
+        while not self._stop.is_set():
+            try:
+                frame, detections = self._fused.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                updated = self.worker.fuse(frame, detections)
+            except Exception:
+                self._failed(frame)
+                continue
+            self._publish(session, frame, updated)
+
+    def _failed(self, frame) -> None:
+        self.stats.errors += 1
+        self._per_camera[(frame.camera_id, "errors")] += 1
+        log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
+
+    def _publish(self, session, frame, updated) -> None:
+        self._per_camera[(frame.camera_id, "processed")] += 1
+        if frame.arrival_ns:
+            self.stats.latencies_ms.append((now_ns() - frame.arrival_ns) / 1e6)
+        for e in updated:
+            try:
+                session.put(self.keys.object(e.object_id), encode_estimate(e))
+            except Exception:
+                log.exception("publishing %s failed", e.object_id)
+            self._notify(estimate_to_dict(e))
 
     def reset(self, class_id=None, object_id=None) -> int:
         n = self.worker.reset(class_id, object_id)
@@ -328,6 +359,8 @@ class Daemon:
             worker = threading.Thread(
                 target=self._work, args=(session,), daemon=True, name="posefuse-worker"
             )
+            front = threading.Thread(target=self._front_end, daemon=True, name="posefuse-front")
+            threads.append(front)
             for t in [*threads, worker]:
                 t.start()
             try:  # cameras already running: ask for their info rather than wait for it
@@ -381,7 +414,7 @@ class Daemon:
             "frames_processed": s.processed,
             "frames_handled": self.frames_handled(),
             "frames_dropped": dict(sorted(dropped.items())),
-            "frames_pending": self.sync.pending(),
+            "frames_pending": self.sync.pending() + self._fused.qsize(),
             "queued_bytes": self.sync.queued_bytes(),
             "ingest_pending": sum(q.qsize() for q in self._queues),
             "received": dict(s.received),

@@ -60,7 +60,16 @@ class EstimatorWorker:
         self.stats = Stats()
 
     def process(self, frame: SyncedFrame) -> list[ObjectEstimate]:
-        detections = self.detect(frame.image, frame.stamp_ns)
+        """Front end and estimator of one frame (:meth:`detections` then :meth:`fuse`)."""
+        return self.fuse(frame, self.detections(frame))
+
+    def detections(self, frame: SyncedFrame) -> list:
+        """The front end of one frame; touches no state, so it may run while the previous
+        frame is being fused."""
+        return self.detect(frame.image, frame.stamp_ns)
+
+    def fuse(self, frame: SyncedFrame, detections: list) -> list[ObjectEstimate]:
+        """The estimator's update with one frame's detections; frames in stamp order."""
         with self._lock:
             updated = self.estimator.update(
                 Frame(

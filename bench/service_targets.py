@@ -1,0 +1,181 @@
+"""The service's speed targets, measured end to end: latency and throughput of ``posefuse serve``.
+
+python -m bench.service_targets --few DIR:SCENE --many DIR:SCENE [--seconds 20]
+
+Starts ``posefuse serve`` as its own process on loopback and publishes, from this process, the
+views of a scene (1280x720 JPEG, camera info and poses, as cameras do) over and over with
+increasing stamps:
+
+- latency, for the ``--few`` scene (about 8 objects in view) and the ``--many`` one (about
+  30): wall time from putting an image to receiving the first ObjectEstimate stamped with it,
+  at 2 Hz, p50 and p95;
+- throughput: one camera at 10 Hz, then 4 cameras at 2 Hz each (each its own id and view
+  order), ``--seconds`` each: the fraction of images processed (from ``/stats``).
+
+Targets (2 cores): p50 <= 80 ms with ~8 objects, <= 150 ms with ~30; >= 95% processed at
+10 Hz from one camera and at 4 x 2 Hz. Memory at twice the rate: ``bench.service_soak``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+import urllib.request
+
+import msgpack
+import numpy as np
+
+from bench.service_latency import _free_port, _get
+
+CELL = "bench"
+
+
+def _scene_messages(spec: str) -> tuple[list, int]:
+    """[(camera, T_world_cam, image message dict)] of a 'DIR:SCENE' spec and its objects/view."""
+    from estimator.dataset import load_dataset
+    from service.codec import encode_image
+
+    path, _, scene_id = spec.rpartition(":")
+    scene = load_dataset(path).scene(int(scene_id))
+    views = [scene.view(i) for i in scene.im_ids]
+    out = []
+    for v in views:
+        msg = msgpack.unpackb(encode_image(0, "cam0", scene.load_rgb(v.im_id), "jpeg"))
+        out.append((v.camera, v.T_world_cam, msg))
+    return out, int(np.mean([len(v.gts) for v in views]))
+
+
+class Publisher:
+    """Puts frames of several cameras on one session; records put times by stamp."""
+
+    def __init__(self, session):
+        self.session = session
+        self.stamp = 1_000_000_000_000
+        self.put_time: dict[int, float] = {}
+
+    def send(self, cam: str, view) -> None:
+        from service.codec import encode_camera_info, encode_camera_pose
+
+        camera, T_world_cam, msg = view
+        self.stamp += 10_000_000
+        s = self.stamp
+        root = f"{CELL}/@v1/cam/{cam}"
+        self.session.put(f"{root}/info", encode_camera_info(s, cam, camera))
+        self.session.put(f"{root}/pose", encode_camera_pose(s - 1000, cam, T_world_cam))
+        msg = dict(msg, stamp_ns=s, camera_id=cam)
+        self.put_time[s] = time.perf_counter()
+        self.session.put(f"{root}/image", msgpack.packb(msg, use_bin_type=True))
+        self.session.put(f"{root}/pose", encode_camera_pose(s + 1000, cam, T_world_cam))
+
+
+def _reset(base: str) -> None:
+    req = urllib.request.Request(f"{base}/reset", data=b"{}", method="POST")
+    req.add_header("Content-Type", "application/json")
+    urllib.request.urlopen(req, timeout=5).read()
+
+
+def main(argv: list[str] | None = None) -> int:
+    import zenoh
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--few", required=True, help="DIR:SCENE with about 8 objects in view")
+    parser.add_argument("--many", required=True, help="DIR:SCENE with about 30 objects")
+    parser.add_argument("--seconds", type=float, default=20.0, help="per throughput run")
+    parser.add_argument("--latency-frames", type=int, default=40)
+    parser.add_argument("--json", help="write the results here too")
+    args = parser.parse_args(argv)
+
+    scenes = {"few": _scene_messages(args.few), "many": _scene_messages(args.many)}
+    zport, hport = _free_port(), _free_port()
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
+        + ["--http-port", str(hport), "--cell", CELL],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    base = f"http://127.0.0.1:{hport}"
+    results: dict = {}
+    try:
+        for _ in range(600):
+            try:
+                if _get(f"{base}/readyz")["status"] == "ready":
+                    break
+            except OSError:
+                time.sleep(0.5)
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+        first_update: dict[int, float] = {}
+
+        def on_update(sample):
+            stamp = msgpack.unpackb(sample.payload.to_bytes())["stamp_ns"]
+            first_update.setdefault(stamp, time.perf_counter())
+
+        with zenoh.open(conf) as session:
+            session.declare_subscriber(f"{CELL}/@v1/objects/*", on_update)
+            time.sleep(1.0)
+            pub = Publisher(session)
+
+            def run(cameras: int, rate: float, n: int, views) -> dict:
+                before = _get(f"{base}/stats")
+                start = time.perf_counter()
+                for k in range(n):
+                    for c in range(cameras):
+                        delay = start + (k + c / cameras) / rate - time.perf_counter()
+                        if delay > 0:
+                            time.sleep(delay)
+                        pub.send(f"cam{c}", views[(k + 3 * c) % len(views)])
+                time.sleep(3.0)
+                after = _get(f"{base}/stats")
+                processed = after["frames_processed"] - before["frames_processed"]
+                return {"sent": n * cameras, "processed": processed}
+
+            for name, (views, n_obj) in scenes.items():
+                _reset(base)
+                first_update.clear()
+                pub.put_time.clear()
+                run(1, 2.0, args.latency_frames, views)
+                lat = [
+                    1000 * (first_update[s] - t)
+                    for s, t in pub.put_time.items()
+                    if s in first_update
+                ]
+                results[f"latency_{name}"] = {
+                    "objects_per_view": n_obj,
+                    "frames": len(lat),
+                    "p50_ms": float(np.percentile(lat, 50)),
+                    "p95_ms": float(np.percentile(lat, 95)),
+                }
+                print(
+                    f"latency, {n_obj} objects per view ({len(lat)} frames at 2 Hz): "
+                    f"p50 {np.percentile(lat, 50):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms",
+                    flush=True,
+                )
+            views = scenes["few"][0]
+            for cameras, rate in ((1, 10.0), (4, 2.0)):
+                _reset(base)
+                r = run(cameras, rate, int(args.seconds * rate), views)
+                r["fraction"] = r["processed"] / r["sent"]
+                results[f"throughput_{cameras}x{rate:g}Hz"] = r
+                print(
+                    f"{cameras} camera(s) at {rate:g} Hz ({args.seconds:.0f} s): sent "
+                    f"{r['sent']}, processed {r['processed']} ({100 * r['fraction']:.1f}%)",
+                    flush=True,
+                )
+    finally:
+        daemon.terminate()
+        daemon.wait(timeout=20)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
