@@ -31,45 +31,55 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     from estimator.objects import load_catalog
     from estimator.tracker import MultiViewEstimator
-    from service.api import create_app
+    from service.api import create_cells_app
+    from service.cells import CellSet
     from service.daemon import Daemon
+    from service.state import StateStore, catalog_fingerprint
     from service.worker import EstimatorWorker, make_detector
 
     limit_malloc_arenas()
     settings = claim_http_port(_settings(args))
     catalog = load_catalog(settings.catalog)
-    detect = make_detector(settings, catalog)
-    estimator = MultiViewEstimator(catalog, show_progress=True)
-    estimator.warm_up()  # templates and size ratios before the first frame, not during it
-    store = None
-    if settings.state_dir is not None:
-        from service.state import StateStore, catalog_fingerprint
+    detect = make_detector(settings, catalog)  # one network for every cell of the process
+    warm = MultiViewEstimator(catalog, show_progress=True)
+    warm.warm_up()  # templates and size ratios before the first frame, not during it
 
-        store = StateStore(settings.state_dir, catalog_fingerprint(catalog))
-    daemon = Daemon(settings, EstimatorWorker(estimator, detect), state_store=store)
-    restored = daemon.restore_state()
-    if store is not None:
-        print(f"posefuse: state in {store.path} ({restored} objects restored)", flush=True)
-    thread = threading.Thread(target=daemon.run, name="posefuse-daemon", daemon=True)
+    def make_daemon(cell_settings) -> Daemon:
+        estimator = MultiViewEstimator(catalog, banks=warm.banks())
+        estimator.warm_up()
+        store = None
+        if cell_settings.state_dir is not None:
+            store = StateStore(cell_settings.state_dir, catalog_fingerprint(catalog))
+        daemon = Daemon(cell_settings, EstimatorWorker(estimator, detect), state_store=store)
+        restored = daemon.restore_state()
+        if store is not None:
+            print(f"posefuse: state in {store.path} ({restored} objects restored)", flush=True)
+        return daemon
+
+    cells = CellSet(settings, make_daemon)
+    thread = threading.Thread(target=cells.run, name="posefuse-cells", daemon=True)
     thread.start()
-    if not daemon.ready.wait(30):
-        raise PosefuseError("the Zenoh session did not open within 30 s")
+    if not cells.ready.wait(60):
+        raise PosefuseError("the Zenoh session did not open within 60 s")
+    roles = ", ".join(
+        f"{c} ({'active' if cells.daemons[c].active else 'standby'})" for c, _ in cells.cells
+    )
     print(
-        f"posefuse: cell {settings.cell!r}, zenoh {settings.mode} "
+        f"posefuse: cell {roles}, zenoh {settings.mode} "
         f"{' '.join(settings.listen + settings.connect)}; "
         f"HTTP on http://{settings.http_host}:{settings.http_port} (/objects, /stats, /docs)",
         flush=True,
     )
     try:
         uvicorn.run(
-            create_app(daemon),
+            create_cells_app(cells),
             host=settings.http_host,
             port=settings.http_port,
             log_level="warning",
         )
     finally:
-        daemon.stop()
-        thread.join(timeout=10)
+        cells.stop()
+        thread.join(timeout=15)
     return 0
 
 

@@ -218,6 +218,16 @@ def _serve_docs_locally(app: FastAPI) -> None:
         )
 
 
+def create_cells_app(cells) -> FastAPI:
+    """The API of a process serving several cells: the first cell's routes at ``/``, every
+    cell's at ``/cells/{cell}/`` (one cell: the plain API, with that mount too)."""
+    first = next(iter(cells.daemons.values()))
+    app = create_app(first)
+    for cell, daemon in cells.daemons.items():
+        app.mount(f"/cells/{cell}", create_app(daemon))
+    return app
+
+
 def create_app(daemon) -> FastAPI:
     """The API of one daemon (anything with settings, worker, stats_dict, reset, subscribe,
     ready)."""
@@ -264,7 +274,7 @@ def create_app(daemon) -> FastAPI:
     def readyz() -> dict:
         if not daemon.ready.is_set():
             raise HTTPException(status_code=503, detail="not ready")
-        return {"status": "ready"}
+        return {"status": "ready", "role": "active" if daemon.active else "standby"}
 
     @app.get("/objects", response_model=list[ObjectEstimateModel], summary="All current estimates")
     def objects() -> list[dict]:

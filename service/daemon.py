@@ -21,6 +21,10 @@ worker thread.
   says the daemon is up.
 - With a ``state_dir``, the tracks are snapshotted every ``state_interval_s`` and at a clean
   stop, and restored at start (:mod:`service.state`).
+- Several daemons may serve one cell: liveliness tokens elect the one that produces its
+  estimates (:mod:`service.election`); the others stand by with nothing subscribed and take
+  over from the last snapshot when it disappears. :meth:`Daemon.serve` runs a cell on an open
+  session, so one process serves several cells (:mod:`service.cells`).
 """
 
 from __future__ import annotations
@@ -77,6 +81,11 @@ class Daemon:
         self.snapshot_info = None
         self.restored = 0
         self._started = time.monotonic()
+        self.active = False  # the election made this daemon the cell's producer
+        self.election = None
+        self._entities: list = []
+        self._threads: list[threading.Thread] = []
+        self._role_lock = threading.Lock()
 
     # ------------------------------------------------------------------ transport callbacks
     def on_sample(self, sample) -> None:
@@ -337,48 +346,109 @@ class Daemon:
 
     def _snapshot_loop(self) -> None:
         while not self._stop.wait(self.settings.state_interval_s):
-            self.save_state()
+            if self.active:  # a standby's empty estimator must not replace the snapshot
+                self.save_state()
 
     # ------------------------------------------------------------------ lifecycle
     def run(self) -> None:
-        """Open the session, serve until :meth:`stop`."""
+        """Open the session, serve this cell (once the election makes it active) until
+        :meth:`stop`."""
         import zenoh
 
-        threads = [
+        with zenoh.open(zenoh_config(self.settings)) as session:
+            self.serve(session)
+
+    def serve(self, session, primary: bool = True) -> None:
+        """Serve this cell on an open session until :meth:`stop`: the threads, the election
+        (:mod:`service.election`), at stop the last snapshot."""
+        from service.election import Election
+
+        self.start(session)
+        self.election = Election(
+            session,
+            self.keys.root,
+            primary,
+            self.settings.takeover_grace_s,
+            self.activate,
+            self.deactivate,
+        )
+        try:
+            self.election.start()
+            self.ready.set()
+            while not self._stop.wait(0.2):
+                pass
+        finally:
+            self.ready.clear()
+            self.election.close()
+            self.close()
+
+    def start(self, session) -> None:
+        """Start the decoder, front-end, estimator and snapshot threads on ``session``; the
+        cell's inputs are subscribed by :meth:`activate`."""
+        self.session = session
+        self._threads = [
             threading.Thread(target=self._decode_loop, args=(q,), daemon=True, name=f"decode-{i}")
             for i, q in enumerate(self._queues)
         ]
-        if self.state_store is not None:
-            threads.append(threading.Thread(target=self._snapshot_loop, daemon=True))
-        with zenoh.open(zenoh_config(self.settings)) as session:
-            self.session = session
-            subscriber = session.declare_subscriber(self.keys.camera_inputs, self.on_sample)
-            state = session.declare_queryable(self.keys.state, self.on_state_query)
-            reset = session.declare_queryable(self.keys.reset, self.on_reset_query)
-            token = session.liveliness().declare_token(self.keys.alive)
-            worker = threading.Thread(
+        self._threads += [
+            threading.Thread(target=self._front_end, daemon=True, name="posefuse-front"),
+            threading.Thread(
                 target=self._work, args=(session,), daemon=True, name="posefuse-worker"
-            )
-            front = threading.Thread(target=self._front_end, daemon=True, name="posefuse-front")
-            threads.append(front)
-            for t in [*threads, worker]:
-                t.start()
-            try:  # cameras already running: ask for their info rather than wait for it
-                session.get(f"{self.keys.root}/cam/*/info", self._on_info_reply, timeout=2.0)
-            except Exception:
-                log.exception("asking the cameras for their info failed")
-            self.ready.set()
-            try:
-                while not self._stop.wait(0.2):
-                    pass
-            finally:
-                self.ready.clear()
-                for t in [*threads, worker]:
-                    t.join(timeout=5)
+            ),
+        ]
+        if self.state_store is not None:
+            self._threads.append(threading.Thread(target=self._snapshot_loop, daemon=True))
+        for t in self._threads:
+            t.start()
+
+    def activate(self) -> None:
+        """Become the cell's producer: restore the last snapshot (a takeover continues the
+        previous daemon's tracks), subscribe the cameras, answer queries, ask for infos."""
+        session = self.session
+        with self._role_lock:
+            if self.active:
+                return
+            self.restore_state()
+            self._entities = [
+                session.declare_subscriber(self.keys.camera_inputs, self.on_sample),
+                session.declare_queryable(self.keys.state, self.on_state_query),
+                session.declare_queryable(self.keys.reset, self.on_reset_query),
+                session.liveliness().declare_token(self.keys.alive),
+            ]
+            self.active = True
+            self.events["activations"] += 1
+        try:  # cameras already running: ask for their info rather than wait for it
+            session.get(f"{self.keys.root}/cam/*/info", self._on_info_reply, timeout=2.0)
+        except Exception:
+            log.exception("asking the cameras for their info failed")
+
+    def deactivate(self) -> None:
+        """Stand by: another daemon produces this cell's estimates now. No snapshot is written
+        (the active daemon owns it); the tracks are forgotten and restored on activation."""
+        with self._role_lock:
+            if not self.active:
+                return
+            self.active = False
+            for entity in reversed(self._entities):
+                entity.undeclare()
+            self._entities = []
+            self.events["deactivations"] += 1
+            self.worker.reset()
+
+    def close(self) -> None:
+        """Stop the threads, write the last snapshot if this daemon is the producer."""
+        self._stop.set()
+        self._wake.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        with self._role_lock:
+            if self.active:
                 self.save_state()
-                for entity in (token, reset, state, subscriber):
+                for entity in reversed(self._entities):
                     entity.undeclare()
-                self.session = None
+                self._entities = []
+                self.active = False
+        self.session = None
 
     def stop(self) -> None:
         self._stop.set()
@@ -410,6 +480,8 @@ class Daemon:
             c["processed"] = self._per_camera[(cid, "processed")]
             c["errors"] = self._per_camera[(cid, "errors")]
         return {
+            "cell": self.settings.cell,
+            "role": "active" if self.active else "standby",
             "frames_received": self.images_received,
             "frames_processed": s.processed,
             "frames_handled": self.frames_handled(),

@@ -9,9 +9,15 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Annotated
 
 from pydantic import Field, SecretStr, field_validator
-from pydantic_settings import BaseSettings, JsonConfigSettingsSource, SettingsConfigDict
+from pydantic_settings import (
+    BaseSettings,
+    JsonConfigSettingsSource,
+    NoDecode,
+    SettingsConfigDict,
+)
 
 from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
@@ -20,6 +26,17 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="POSEFUSE_", extra="forbid")
 
     cell: str = Field("posefuse", description="key prefix of the cell: {cell}/@v1/...")
+    # scale-out: the cells this daemon serves (default: ``cell``) and those it backs up
+    cells: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="cells served, comma-separated (default: cell)"
+    )
+    standby_cells: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="cells this daemon takes over when their daemon disappears",
+    )
+    takeover_grace_s: float = Field(
+        5.0, description="a standby serves a cell nobody claimed within this time of its start"
+    )
     # Zenoh transport: peer mode listening on loopback by default; client mode to a router
     mode: str = Field("peer", description="zenoh mode: peer or client")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -61,6 +78,22 @@ class Settings(BaseSettings):
     wait_ms: float = 500.0  # how long an image waits for its camera info and a later pose
     reanchor_frames: int = 3  # late frames in a row after which a camera's clock re-anchors
     info_request_s: float = 1.0  # a camera without info is asked for it at most this often
+
+    @field_validator("cells", "standby_cells", mode="before")
+    @classmethod
+    def _cell_list(cls, v):
+        if isinstance(v, str):
+            v = [c.strip() for c in v.split(",") if c.strip()]
+        return v
+
+    def served_cells(self) -> list[tuple[str, bool]]:
+        """(cell, primary) of every cell this daemon serves or backs up, in order; ValueError
+        when a cell is listed twice."""
+        primary = self.cells or [self.cell]
+        listed = [*primary, *self.standby_cells]
+        if len(set(listed)) != len(listed):
+            raise ValueError(f"cells {primary} and standby_cells {self.standby_cells} overlap")
+        return [(c, True) for c in primary] + [(c, False) for c in self.standby_cells]
 
     @field_validator("mode")
     @classmethod
