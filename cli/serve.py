@@ -119,6 +119,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
             args.rate,
             seed=args.seed,
             max_views=args.views,
+            t0_ns=args.t0_ns,
         )
     )
     with zenoh.open(zenoh_config(settings)) as session:
@@ -239,6 +240,9 @@ def register(subparsers) -> None:
     p.add_argument("--rate", type=float, default=2.0, help="images per second")
     p.add_argument("--camera", default="cam0", help="camera id in the keys")
     p.add_argument("--seed", type=int, default=0, help="seed of the pose timing jitter")
+    p.add_argument(
+        "--t0-ns", type=int, default=1_000_000_000_000, help="stamp of the first image (ns)"
+    )
     p.add_argument(
         "--warmup",
         type=float,

@@ -86,6 +86,14 @@ class Daemon:
         self._entities: list = []
         self._threads: list[threading.Thread] = []
         self._role_lock = threading.Lock()
+        self.ros2 = None  # the ROS 2 key layout when settings.ros2 is not off
+        if settings.ros2 != "off":
+            from service.ros2 import Ros2Layout
+
+            self.ros2 = Ros2Layout(settings.ros2, settings.ros2_domain_id)
+            models = getattr(getattr(worker, "estimator", None), "catalog", {}) or {}
+            self._box_sizes = {k: m.points.max(0) - m.points.min(0) for k, m in models.items()}
+            self._gid = b""
 
     # ------------------------------------------------------------------ transport callbacks
     def on_sample(self, sample) -> None:
@@ -116,6 +124,35 @@ class Daemon:
             return False
         return True
 
+    def on_ros2_sample(self, sample) -> None:
+        """Subscriber callback of the ROS 2 camera topics: check, enqueue; never decode here."""
+        try:
+            self.ingest_ros2(str(sample.key_expr), sample.payload.to_bytes())
+        except Exception:
+            log.exception("unexpected error while receiving")
+
+    def ingest_ros2(self, key: str, payload: bytes) -> bool:
+        """A ROS 2 camera message (CDR) to its decoder; False when dropped (counted)."""
+        parsed = self.ros2.parse_input(key, self.settings.cell) if self.ros2 else None
+        if parsed is None:
+            self.stats.count(self.stats.received, "other")
+            self.ingest_dropped["not_an_input_key"] += 1
+            return False
+        cam_id, msgtype, kind = parsed
+        self.stats.count(self.stats.received, key)
+        if kind == "image":
+            self.images_received += 1
+        if len(payload) > self.settings.max_payload_bytes:
+            self._decode_failed(key, kind, "too_large")
+            return False
+        q = self._queues[zlib.crc32(cam_id.encode()) % len(self._queues)]
+        try:
+            q.put_nowait((key, cam_id, f"{kind}:{msgtype}", payload, now_ns()))
+        except queue.Full:
+            self.ingest_dropped[f"{kind}_ingest_full"] += 1
+            return False
+        return True
+
     def _decode_failed(self, key: str, kind: str, code: str) -> None:
         self.stats.count(self.stats.decode_errors, key)
         self.stats.count(self.stats.decode_reasons, f"{kind}_{code}")
@@ -143,7 +180,12 @@ class Daemon:
 
     def _handle(self, key: str, cam_id: str, kind: str, payload: bytes, arrival: int) -> None:
         """Decode one message and give it to the synchroniser; count it if it is bad."""
+        kind, _, ros_type = kind.partition(":")
         try:
+            if ros_type:  # a ROS 2 message: as the native one, then the native checks
+                from service.ros2 import to_native
+
+                payload = to_native(ros_type, payload, cam_id)
             msg = self.decode[kind](payload)
         except DecodeError as exc:
             self._decode_failed(key, kind, exc.code)
@@ -301,6 +343,28 @@ class Daemon:
             except Exception:
                 log.exception("publishing %s failed", e.object_id)
             self._notify(estimate_to_dict(e))
+        if self.ros2 is not None and updated:
+            self._publish_ros2(session, frame.stamp_ns, updated)
+
+    def _publish_ros2(self, session, stamp_ns: int, updated) -> None:
+        """The updated estimates as a Detection3DArray and a TFMessage (service/ros2.py)."""
+        from service.ros2 import DETECTIONS, TF, encode_detections, encode_tf
+
+        cell = self.settings.cell
+        try:
+            out = (
+                (
+                    f"/posefuse/{cell}/detections",
+                    DETECTIONS,
+                    encode_detections(updated, cell, self._box_sizes, stamp_ns),
+                ),
+                ("/tf", TF, encode_tf(updated, cell)),
+            )
+            for topic, msgtype, data in out:
+                attachment = self.ros2.attachment(topic, stamp_ns, self._gid)
+                session.put(self.ros2.key(topic, msgtype), data, attachment=attachment)
+        except Exception:
+            log.exception("publishing the ROS 2 messages failed")
 
     def reset(self, class_id=None, object_id=None) -> int:
         n = self.worker.reset(class_id, object_id)
@@ -415,6 +479,15 @@ class Daemon:
                 session.declare_queryable(self.keys.reset, self.on_reset_query),
                 session.liveliness().declare_token(self.keys.alive),
             ]
+            if self.ros2 is not None:
+                import hashlib
+
+                self._gid = hashlib.sha256(f"{session.zid()}/{self.keys.root}".encode()).digest()
+                self._entities.append(
+                    session.declare_subscriber(
+                        self.ros2.input_keys(self.settings.cell), self.on_ros2_sample
+                    )
+                )
             self.active = True
             self.events["activations"] += 1
         try:  # cameras already running: ask for their info rather than wait for it

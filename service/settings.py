@@ -45,6 +45,10 @@ class Settings(BaseSettings):
     zenoh_config: Path | None = Field(
         None, description="a zenoh JSON5 config file (TLS, access control) merged first"
     )
+    # ROS 2 on the same bus (service/ros2.py): off, bridge (zenoh-bridge-ros2dds keys) or
+    # rmw_zenoh (rmw_zenoh_cpp keys and attachments)
+    ros2: str = Field("off", description="ROS 2 key layout: off, bridge or rmw_zenoh")
+    ros2_domain_id: int = Field(0, description="ROS_DOMAIN_ID of the rmw_zenoh layout")
     # HTTP API
     http_host: str = "127.0.0.1"
     http_port: int = 8000
@@ -94,6 +98,13 @@ class Settings(BaseSettings):
         if len(set(listed)) != len(listed):
             raise ValueError(f"cells {primary} and standby_cells {self.standby_cells} overlap")
         return [(c, True) for c in primary] + [(c, False) for c in self.standby_cells]
+
+    @field_validator("ros2")
+    @classmethod
+    def _ros2(cls, v: str) -> str:
+        if v not in ("off", "bridge", "rmw_zenoh"):
+            raise ValueError("ros2 must be off, bridge or rmw_zenoh")
+        return v
 
     @field_validator("mode")
     @classmethod

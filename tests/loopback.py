@@ -123,6 +123,32 @@ def zenoh_peer(*connect: str):
 
 SECOND = 1_000_000_000
 
+ROUTER = """
+import sys, time, zenoh
+conf = zenoh.Config()
+conf.insert_json5("mode", '"router"')
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:%s"]' % sys.argv[1])
+with zenoh.open(conf):
+    print("router up", flush=True)
+    while True:
+        time.sleep(1)
+"""
+
+
+def start_router(port: int):
+    """A Zenoh router in its own process on tcp/127.0.0.1:port (kill it when done)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", ROUTER, str(port)], stdout=subprocess.PIPE, text=True
+    )
+    if proc.stdout.readline().strip() != "router up":
+        proc.kill()
+        raise AssertionError("the Zenoh router did not start")
+    return proc
+
 
 class FakeCamera:
     """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given."""

@@ -3,11 +3,17 @@ back from the state folder, its cameras are asked for their info), and the Zenoh
 and started again under a daemon and a camera that are its clients (loss is counted by sequence
 numbers, and good frames are processed once the router is back)."""
 
-import subprocess
-import sys
 import time
 
-from loopback import SECOND, FakeCamera, ServeProcess, free_port, wait_until, zenoh_peer
+from loopback import (
+    SECOND,
+    FakeCamera,
+    ServeProcess,
+    free_port,
+    start_router,
+    wait_until,
+    zenoh_peer,
+)
 
 from clients.camera import InfoServer, scene_messages
 from estimator.dataset import load_dataset
@@ -83,27 +89,6 @@ def test_kill_9_and_restart_restores_the_tracks(full_res_dataset, tmp_path):
         daemon.stop()
 
 
-ROUTER = """
-import sys, time, zenoh
-conf = zenoh.Config()
-conf.insert_json5("mode", '"router"')
-conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:%s"]' % sys.argv[1])
-with zenoh.open(conf):
-    print("router up", flush=True)
-    while True:
-        time.sleep(1)
-"""
-
-
-def _router(port: int) -> subprocess.Popen:
-    proc = subprocess.Popen(
-        [sys.executable, "-c", ROUTER, str(port)], stdout=subprocess.PIPE, text=True
-    )
-    assert proc.stdout.readline().strip() == "router up"
-    return proc
-
-
 def _client_session(endpoint: str):
     import json
 
@@ -118,7 +103,7 @@ def _client_session(endpoint: str):
 def test_router_kill_and_restart(tmp_path):
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    router = _router(port)
+    router = start_router(port)
     daemon = ServeProcess("--cell", "routed", "--mode", "client", "--connect", endpoint)
     try:
         with _client_session(endpoint) as session:
@@ -131,7 +116,7 @@ def test_router_kill_and_restart(tmp_path):
             router.wait()
             cam.frames(20 * SECOND, 3)  # nobody to route them: lost
             time.sleep(0.5)
-            router = _router(port)
+            router = start_router(port)
             stamp = 30 * SECOND
             deadline = time.time() + 60
             while daemon.stats()["frames_processed"] < 4:  # until both clients are back
