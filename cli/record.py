@@ -58,7 +58,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())  # as Ctrl-C: the file is finished
     full: RecordingFull | None = None
-    recorder = Recorder(args.out, metadata={"cell": settings.cell}, mirror=mirror)
+    if args.ros2:  # a rosbag2 folder of ROS 2 messages instead of our own MCAP
+        from service.ros2 import Ros2BagRecorder
+
+        if Path(args.out).exists():
+            raise PosefuseError(f"--out {args.out}: a rosbag2 folder is created; it exists")
+        recorder = Ros2BagRecorder(args.out, settings.cell)
+    else:
+        recorder = Recorder(args.out, metadata={"cell": settings.cell}, mirror=mirror)
     try:
         with zenoh.open(zenoh_config(settings)) as session:
             session.declare_subscriber(f"{keys.root}/**", on_sample)
@@ -195,7 +202,12 @@ def _cmd_make_demo(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     p = add_command(subparsers, "record", "record a cell's keys to an MCAP file")
     _add_transport_args(p)
-    p.add_argument("--out", required=True, help="FILE.mcap to write")
+    p.add_argument("--out", required=True, help="FILE.mcap to write (--ros2: a folder)")
+    p.add_argument(
+        "--ros2",
+        action="store_true",
+        help="write a rosbag2 folder (MCAP storage, ROS 2 messages, cdr) instead",
+    )
     p.add_argument(
         "--catalog",
         help="the catalog whose meshes show the estimates in Foxglove ("

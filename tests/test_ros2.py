@@ -246,3 +246,65 @@ def test_ros2_output_read_back_from_the_bus(full_res_dataset, robi_catalog):
             np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
             n_checked += 1
     assert n_checked == len(native)
+
+
+# ----------------------------------------------------------------------------- rosbag2
+def test_record_ros2_writes_a_rosbag2_that_rosbags_reads(full_res_dataset, tmp_path):
+    """The native messages of a scene and two estimates through the --ros2 recorder; rosbags'
+    Reader opens the folder and every message deserialises to its ROS 2 type."""
+    from rosbags.rosbag2 import Reader
+
+    from estimator.tracker import ObjectEstimate, RotationHypothesis
+    from service.codec import decode_camera_info, encode_estimate
+
+    cell = "bag"
+    dataset = load_dataset(full_res_dataset)
+    messages = [(k, p) for _, k, p in scene_messages(dataset, 0, cell, "cam0", 2.0)]
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    estimate = ObjectEstimate(
+        5_000_000_123,
+        "gear-1",
+        4,
+        "gear",
+        T,
+        np.diag(np.arange(1.0, 7.0)) * 1e-4,
+        0.8,
+        (
+            RotationHypothesis(np.array([0, 0, 0, 1.0]), 0.7, 3),
+            RotationHypothesis(np.array([0, 0, 1.0, 0]), 0.3, 1),
+        ),
+        4,
+        "confirmed",
+    )
+    messages.append((f"{cell}/@v1/objects/gear-1", encode_estimate(estimate)))
+    messages.append((f"{cell}/@v1/estimator/state", b"not a camera message"))
+    out = tmp_path / "bag"
+    recorder = ros2.Ros2BagRecorder(out, cell)
+    for k, (key, payload) in enumerate(messages):
+        recorder.write(key, payload, 1_000 + k)
+    assert recorder.close() and recorder.skipped == 1
+    store = ros2.typestore()
+    seen: dict = {}
+    with Reader(out) as reader:
+        assert reader.message_count == len(messages)  # 1 skipped, the estimate twice (tf)
+        for conn, log_time, raw in reader.messages():
+            msg = store.deserialize_cdr(raw, conn.msgtype)
+            seen.setdefault((conn.topic, conn.msgtype), []).append((log_time, msg))
+    n_views = len(dataset.scene(0).im_ids)
+    assert len(seen[(f"/posefuse/{cell}/cam0/image_raw/compressed", ros2.COMPRESSED)]) == n_views
+    infos = seen[(f"/posefuse/{cell}/cam0/camera_info", ros2.CAMERA_INFO)]
+    native_info = decode_camera_info(next(p for k, p in messages if k.endswith("/info")))
+    np.testing.assert_array_equal(infos[0][1].k.reshape(3, 3), native_info.camera.K)
+    assert len(seen[(f"/posefuse/{cell}/cam0/pose", ros2.POSE)]) == sum(
+        k.endswith("/pose") for k, _ in messages
+    )
+    [(_, det)] = seen[(f"/posefuse/{cell}/detections", ros2.DETECTIONS)]
+    d = det.detections[0]
+    assert d.id == "gear-1" and d.results[0].hypothesis.class_id == "gear"
+    assert d.results[0].hypothesis.score == pytest.approx(0.8)
+    assert [r.hypothesis.score for r in d.results[1:]] == [pytest.approx(0.3)]
+    np.testing.assert_allclose(d.results[0].pose.covariance.reshape(6, 6), estimate.cov)
+    [(_, tf)] = seen[("/tf", ros2.TF)]
+    assert tf.transforms[0].child_frame_id == f"{cell}/gear-1"
+    assert tf.transforms[0].transform.translation.z == pytest.approx(0.3)
