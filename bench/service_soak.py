@@ -1,6 +1,7 @@
 """Soak benchmark of the daemon: overload, several cameras and decompression bombs for minutes.
 
-python -m bench.service_soak [--minutes 10] [--cameras 4] [--overload 2] [--bomb-every 30]
+python -m bench.service_soak [--minutes 10] [--cameras 4] [--overload 2 | --rate 20]
+    [--bomb-every 30]
 
 Starts ``posefuse serve`` as its own process on loopback. The frames are those of the shipped
 demo recording (1280x720 JPEG of rendered bins, with their camera info and poses), re-stamped
@@ -111,6 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--overload", type=float, default=2.0, help="times the sustainable rate")
+    parser.add_argument(
+        "--rate", type=float, help="offered frames/s over all cameras (default: --overload x)"
+    )
     parser.add_argument("--bomb-every", type=float, default=30.0, help="seconds")
     parser.add_argument("--calibrate", type=int, default=12, help="frames to measure the rate")
     parser.add_argument("--recording", default=str(DEFAULT_RECORDING))
@@ -153,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
                     time.sleep(0.01)
             per_frame = (time.monotonic() - t0) / args.calibrate
             sustainable = 1.0 / per_frame
-            rate = args.overload * sustainable
+            rate = args.rate or args.overload * sustainable
             print(
                 f"sustainable rate {sustainable:.2f} frames/s ({per_frame * 1000:.0f} ms a "
                 f"frame, {args.calibrate} frames); soak at {rate:.2f} frames/s over "
