@@ -50,6 +50,47 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def start_daemon(cell: str) -> tuple[subprocess.Popen, int, str]:
+    """``posefuse serve`` of ``cell`` on free loopback ports, once ready: (process, Zenoh
+    port, HTTP base URL)."""
+    zport, hport = _free_port(), _free_port()
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
+        + ["--http-port", str(hport), "--cell", cell],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    base = f"http://127.0.0.1:{hport}"
+    for _ in range(600):
+        try:
+            if _get(f"{base}/readyz")["status"] == "ready":
+                break
+        except OSError:
+            time.sleep(0.5)
+    return daemon, zport, base
+
+
+def peer_config(zport: int):
+    """A Zenoh peer configuration connected to the daemon's port (no scouting)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
+    return conf
+
+
+class FirstUpdates(dict):
+    """Subscriber callback: stamp_ns -> wall time (perf_counter) of the first ObjectEstimate
+    received with that stamp."""
+
+    def __call__(self, sample) -> None:
+        stamp = msgpack.unpackb(sample.payload.to_bytes())["stamp_ns"]
+        self.setdefault(stamp, time.perf_counter())
+
+
 def main(argv: list[str] | None = None) -> int:
     import zenoh
 
@@ -66,44 +107,12 @@ def main(argv: list[str] | None = None) -> int:
     views = [scene.view(i) for i in scene.im_ids]
     images = [encode_image(0, "cam0", scene.load_rgb(v.im_id), "jpeg") for v in views]
     n_objects = len(views[0].gts)
-    zport, hport = _free_port(), _free_port()
-    daemon = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "cli",
-            "serve",
-            "--listen",
-            f"tcp/127.0.0.1:{zport}",
-            "--http-port",
-            str(hport),
-            "--cell",
-            "bench",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    base = f"http://127.0.0.1:{hport}"
+    daemon, zport, base = start_daemon("bench")
     try:
-        for _ in range(600):
-            try:
-                if _get(f"{base}/readyz")["status"] == "ready":
-                    break
-            except OSError:
-                time.sleep(0.5)
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
-        first_update: dict[int, float] = {}
-
-        def on_update(sample):
-            stamp = msgpack.unpackb(sample.payload.to_bytes())["stamp_ns"]
-            first_update.setdefault(stamp, time.perf_counter())
-
+        conf = peer_config(zport)
+        first_update = FirstUpdates()
         with zenoh.open(conf) as session:
-            session.declare_subscriber("bench/@v1/objects/*", on_update)
+            session.declare_subscriber("bench/@v1/objects/*", first_update)
             time.sleep(1.0)
             stamp = [1_000_000_000_000]
             put_time: dict[int, float] = {}

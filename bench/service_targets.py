@@ -20,16 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
-import sys
 import time
 import urllib.request
 
 import msgpack
 import numpy as np
 
-from bench.service_latency import _free_port, _get
+from bench.service_latency import FirstUpdates, _get, peer_config, start_daemon
 
 CELL = "bench"
 
@@ -90,35 +87,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     scenes = {"few": _scene_messages(args.few), "many": _scene_messages(args.many)}
-    zport, hport = _free_port(), _free_port()
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
-        + ["--http-port", str(hport), "--cell", CELL],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    base = f"http://127.0.0.1:{hport}"
+    daemon, zport, base = start_daemon(CELL)
     results: dict = {}
     try:
-        for _ in range(600):
-            try:
-                if _get(f"{base}/readyz")["status"] == "ready":
-                    break
-            except OSError:
-                time.sleep(0.5)
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{zport}"]))
-        first_update: dict[int, float] = {}
-
-        def on_update(sample):
-            stamp = msgpack.unpackb(sample.payload.to_bytes())["stamp_ns"]
-            first_update.setdefault(stamp, time.perf_counter())
-
+        conf = peer_config(zport)
+        first_update = FirstUpdates()
         with zenoh.open(conf) as session:
-            session.declare_subscriber(f"{CELL}/@v1/objects/*", on_update)
+            session.declare_subscriber(f"{CELL}/@v1/objects/*", first_update)
             time.sleep(1.0)
             pub = Publisher(session)
 
