@@ -327,39 +327,30 @@ def to_native(msgtype: str, payload: bytes, cam_id: str) -> bytes:
     return msgpack.packb(out, use_bin_type=True)
 
 
-def camera_messages(stamp_ns: int, camera, T_world_cam, jpeg: bytes, frame_id: str = "camera"):
-    """CDR bytes of a camera's CameraInfo, PoseStamped and CompressedImage (what a ROS 2
-    camera driver and the robot's TF would send), keyed by topic suffix."""
+def encode_camera_info(stamp_ns: int, camera, frame_id: str) -> bytes:
+    """CDR bytes of a camera's sensor_msgs/CameraInfo (plumb_bob, ``P = [K | 0]``)."""
     from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
 
     store = typestore()
     T = store.types
-    header = Header(stamp=_time(stamp_ns), frame_id=frame_id)
     d = np.zeros(5) if camera.dist is None else np.asarray(camera.dist, float)
     K = np.asarray(camera.K, float)
-    P = np.hstack([K, np.zeros((3, 1))])
     info = T[CAMERA_INFO](
-        header=header,
+        header=Header(stamp=_time(stamp_ns), frame_id=frame_id),
         height=camera.height,
         width=camera.width,
         distortion_model="plumb_bob",
         d=d.copy(),
         k=K.reshape(9).copy(),
         r=np.eye(3).reshape(9),
-        p=P.reshape(12).copy(),
+        p=np.hstack([K, np.zeros((3, 1))]).reshape(12),
         binning_x=0,
         binning_y=0,
         roi=T["sensor_msgs/msg/RegionOfInterest"](
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         ),
     )
-    pose = T[POSE](header=Header(stamp=_time(stamp_ns), frame_id="world"), pose=_pose(T_world_cam))
-    image = T[COMPRESSED](header=header, format="jpeg", data=np.frombuffer(jpeg, np.uint8).copy())
-    return {
-        "camera_info": bytes(store.serialize_cdr(info, CAMERA_INFO)),
-        "pose": bytes(store.serialize_cdr(pose, POSE)),
-        "image_raw/compressed": bytes(store.serialize_cdr(image, COMPRESSED)),
-    }
+    return bytes(store.serialize_cdr(info, CAMERA_INFO))
 
 
 # ---------------------------------------------------------------------------- rosbag2
@@ -441,8 +432,8 @@ class Ros2BagRecorder:
                         )
                 elif kind == "info":
                     info = decode_camera_info(payload)
-                    msgs = camera_messages(stamp, info.camera, np.eye(4), b"", header.frame_id)
-                    self._put(f"{base}/camera_info", CAMERA_INFO, msgs["camera_info"], log_time_ns)
+                    data = encode_camera_info(stamp, info.camera, header.frame_id)
+                    self._put(f"{base}/camera_info", CAMERA_INFO, data, log_time_ns)
                 else:
                     pose = decode_camera_pose(payload)
                     msg = T[POSE](
