@@ -390,6 +390,11 @@ class MultiViewEstimator:
             if include_tentative or self.tracks[k].status == CONFIRMED
         ]
 
+    def held(self) -> list[HeldDetection]:
+        """The detections waiting for a partner view to found a track, oldest first per class
+        (parts seen in one view only)."""
+        return [h for obj_id in sorted(self._held) for h in self._held[obj_id]]
+
     def reset(self, class_id: int | None = None, object_id: str | None = None) -> int:
         """Forget all tracks, those of one class, or one object. Returns how many were removed.
 
