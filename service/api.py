@@ -85,6 +85,57 @@ class ResetResponse(BaseModel):
     removed: int
 
 
+class NbvCandidateModel(BaseModel):
+    """A camera pose the robot can reach; K, width and height when it is not the camera's."""
+
+    T_world_cam: list[float] = Field(min_length=16, max_length=16, description="row-major 4x4")
+    K: list[float] | None = Field(None, min_length=9, max_length=9, description="row-major 3x3")
+    width: StrictInt | None = Field(None, ge=1, le=65535)
+    height: StrictInt | None = Field(None, ge=1, le=65535)
+    model_config = ConfigDict(extra="forbid")
+
+
+class NbvRequestModel(BaseModel):
+    """Candidates to rank (omitted: a hemisphere over the bin at the working distances)."""
+
+    candidates: list[NbvCandidateModel] | None = Field(None, min_length=1, max_length=1000)
+    camera_id: str | None = Field(None, min_length=1, max_length=256)
+    top_k: StrictInt = Field(10, ge=1, le=1000)
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {},
+                {
+                    "top_k": 1,
+                    "candidates": [
+                        {"T_world_cam": [1, 0, 0, 0, 0, -1, 0, 0, 0, 0, -1, 0.7, 0, 0, 0, 1]}
+                    ],
+                },
+            ]
+        },
+    )
+
+
+class NbvObjectGain(BaseModel):
+    object_id: str
+    translation_gain: float = Field(description="nats")
+    rotation_gain: float = Field(description="nats")
+    visibility: float = Field(description="0 (hidden or outside the image) to 1")
+
+
+class NbvRanked(BaseModel):
+    index: int = Field(description="the candidate's index in the request")
+    score: float = Field(description="expected information, nats")
+    T_world_cam: list[float]
+    objects: list[NbvObjectGain]
+
+
+class NbvResponse(BaseModel):
+    candidates: int
+    ranked: list[NbvRanked]
+
+
 class ErrorModel(BaseModel):
     """An error: what went wrong, in words."""
 
@@ -315,6 +366,35 @@ def create_app(daemon) -> FastAPI:
             ) from None
         except ValueError as exc:  # a class the catalog does not have
             raise HTTPException(status_code=404, detail=str(exc)) from None
+
+    @app.post(
+        "/nbv",
+        response_model=NbvResponse,
+        summary="Rank candidate camera poses by what they would teach the estimator",
+        dependencies=guard,
+        responses={
+            400: _error("The body cannot be parsed (not UTF-8 JSON)"),
+            409: _error("Candidates without intrinsics and no camera info known yet"),
+            **INVALID,
+            **TOO_LARGE,
+            **(UNAUTHORIZED if token else {}),
+        },
+    )
+    def nbv(request: NbvRequestModel | None = None) -> dict:
+        from service.codec import DecodeError, nbv_request_from_dict
+
+        body = (request or NbvRequestModel()).model_dump(exclude_none=True)
+        for c in body.get("candidates", []):
+            for k in [k for k, v in c.items() if v is None]:
+                del c[k]
+        try:
+            parsed = nbv_request_from_dict(body)
+        except DecodeError as exc:
+            raise HTTPException(status_code=422, detail=str(exc)) from None
+        try:
+            return daemon.nbv(parsed)
+        except ValueError as exc:
+            raise HTTPException(status_code=409, detail=str(exc)) from None
 
     @app.get("/stats", summary="Frames received, processed, dropped; decode errors; latency")
     def stats() -> dict:

@@ -74,6 +74,28 @@ class ResetRequest:
     object_id: str | None = None
 
 
+MAX_NBV_CANDIDATES = 1000
+
+
+@dataclass(frozen=True, eq=False)
+class NbvCandidate:
+    """T_world_cam: (4, 4) metres; camera: its intrinsics, or None for the named camera's."""
+
+    T_world_cam: np.ndarray
+    camera: Camera | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class NbvRequest:
+    """Candidates to rank (None: the default hemisphere over the bin), the camera whose
+    intrinsics they use when they carry none (None: the first camera with an info), how many
+    of the best to return."""
+
+    candidates: tuple[NbvCandidate, ...] | None = None
+    camera_id: str | None = None
+    top_k: int = 10
+
+
 # ---------------------------------------------------------------------------- helpers
 
 
@@ -311,7 +333,104 @@ def decode_reset(payload: bytes | None, max_bytes: int = 4096) -> ResetRequest:
     return ResetRequest(class_id, object_id)
 
 
+def nbv_request_from_dict(msg: dict) -> NbvRequest:
+    """A next-best-view request from its map (msgpack or JSON); DecodeError naming the field."""
+    kind = "NbvRequest"
+    unknown = set(msg) - {"v", "candidates", "camera_id", "top_k"}
+    if unknown:
+        raise DecodeError(kind, f"unknown fields {sorted(unknown)}")
+    top_k = _int(msg, "top_k", kind, 1, MAX_NBV_CANDIDATES) if "top_k" in msg else 10
+    camera_id = _str(msg, "camera_id", kind) if msg.get("camera_id") is not None else None
+    raw = msg.get("candidates")
+    if raw is None:
+        return NbvRequest(None, camera_id, top_k)
+    if not isinstance(raw, list) or not 1 <= len(raw) <= MAX_NBV_CANDIDATES:
+        raise DecodeError(kind, f"'candidates' must be a list of 1 to {MAX_NBV_CANDIDATES}")
+    out = []
+    for i, c in enumerate(raw):
+        where = f"{kind} candidate {i}"
+        if not isinstance(c, dict):
+            raise DecodeError(where, "not a map")
+        extra = set(c) - {"T_world_cam", "K", "width", "height"}
+        if extra:
+            raise DecodeError(where, f"unknown fields {sorted(extra)}")
+        T = _floats(c, "T_world_cam", where, 16).reshape(4, 4)
+        R = T[:3, :3]
+        if (
+            not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+            or np.linalg.det(R) < 0.5
+            or not np.allclose(T[3], [0, 0, 0, 1])
+        ):
+            raise DecodeError(where, "'T_world_cam' must be a rigid transform (row-major 4x4)")
+        camera = None
+        if any(k in c for k in ("K", "width", "height")):
+            K = _floats(c, "K", where, 9).reshape(3, 3)
+            width = _int(c, "width", where, 1, 65535)
+            height = _int(c, "height", where, 1, 65535)
+            try:
+                camera = Camera(K, width, height)
+            except ValueError as exc:
+                raise DecodeError(where, str(exc)) from None
+        out.append(NbvCandidate(T, camera))
+    return NbvRequest(tuple(out), camera_id, top_k)
+
+
+def decode_nbv_request(payload: bytes | None, max_bytes: int = 1 << 20) -> NbvRequest:
+    """An empty payload asks about the default candidates; else {v, candidates?, ...}."""
+    if payload is None or len(payload) == 0:
+        return NbvRequest()
+    return nbv_request_from_dict(_unpack(payload, "NbvRequest", max_bytes))
+
+
+def encode_nbv_request(
+    candidates: list[tuple[np.ndarray, Camera | None]] | None = None,
+    camera_id: str | None = None,
+    top_k: int = 10,
+) -> bytes:
+    msg: dict = {"top_k": top_k}
+    if camera_id is not None:
+        msg["camera_id"] = camera_id
+    if candidates is not None:
+        items = []
+        for T, cam in candidates:
+            item = {"T_world_cam": np.asarray(T, float).reshape(16).tolist()}
+            if cam is not None:
+                item |= {"K": cam.K.reshape(9).tolist(), "width": cam.width, "height": cam.height}
+            items.append(item)
+        msg["candidates"] = items
+    return _pack(msg)
+
+
 # ---------------------------------------------------------------------------- encoders
+
+
+def nbv_reply(scores, candidates, tracks, top_k: int) -> dict:
+    """The ranked candidates of :func:`estimator.nbv.score_candidates` as a message: the best
+    ``top_k``, each with its pose, score (nats) and the objects it would teach something, most
+    first (translation and rotation gains in nats, visibility in [0, 1])."""
+    ranked = []
+    for i in scores.order[:top_k]:
+        i = int(i)
+        gain = scores.visibility[i] * (scores.translation[i] + scores.rotation[i])
+        objects = [
+            {
+                "object_id": tracks[o].key,
+                "translation_gain": float(scores.translation[i, o]),
+                "rotation_gain": float(scores.rotation[i, o]),
+                "visibility": float(scores.visibility[i, o]),
+            }
+            for o in np.argsort(-gain, kind="stable")
+            if gain[o] > 0
+        ]
+        ranked.append(
+            {
+                "index": i,
+                "score": float(scores.score[i]),
+                "T_world_cam": np.asarray(candidates[i].T_world_cam).reshape(16).tolist(),
+                "objects": objects,
+            }
+        )
+    return {"candidates": len(candidates), "ranked": ranked}
 
 
 def _pack(msg: dict) -> bytes:

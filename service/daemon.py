@@ -37,13 +37,18 @@ import time
 import zlib
 from collections import Counter
 
+import numpy as np
+
 from service.codec import (
     DecodeError,
+    NbvRequest,
+    decode_nbv_request,
     decode_reset,
     decoders,
     encode_estimate,
     encode_estimates,
     estimate_to_dict,
+    nbv_reply,
 )
 from service.keys import Keys
 from service.settings import Settings, sync_config, zenoh_config
@@ -366,6 +371,57 @@ class Daemon:
         except Exception:
             log.exception("publishing the ROS 2 messages failed")
 
+    def nbv(self, request: NbvRequest) -> dict:
+        """Rank candidate views (the request's, or the default hemisphere over the bin) by
+        what they would teach the estimator (estimator/nbv.py). ValueError when a candidate
+        has no intrinsics and no camera info is known to give them."""
+        from estimator.nbv import BinRegion, CandidateView, default_candidates, score_candidates
+
+        s = self.settings
+        T_world_bin = np.eye(4)
+        T_world_bin[:3, 3] = s.nbv_bin_center
+        region = BinRegion(tuple(s.nbv_bin_size), s.nbv_bin_wall_height, T_world_bin)
+        camera = self.sync.camera(request.camera_id)
+        needs_camera = request.candidates is None or any(
+            c.camera is None for c in request.candidates
+        )
+        if needs_camera and camera is None:
+            which = f"camera {request.camera_id!r}" if request.camera_id else "any camera"
+            raise ValueError(
+                f"no camera info of {which} yet: give K, width and height with each candidate"
+            )
+        if request.candidates is None:
+            candidates = default_candidates(camera, region, tuple(s.nbv_distances))
+        else:
+            candidates = [
+                CandidateView(c.T_world_cam, c.camera or camera) for c in request.candidates
+            ]
+        tracks, indices = self.worker.nbv_inputs()
+        scores = score_candidates(tracks, candidates, indices, bin_region=region)
+        return nbv_reply(scores, candidates, tracks, request.top_k)
+
+    def objects_needing_views(self) -> list[str]:
+        from estimator.nbv import needs_view
+
+        tracks, _ = self.worker.nbv_inputs()
+        return [t.key for t in tracks if not t.key.startswith("held/") and needs_view(t)]
+
+    def on_nbv_query(self, query) -> None:
+        import msgpack
+
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            reply = {"v": 1, **self.nbv(decode_nbv_request(payload))}
+        except (DecodeError, ValueError) as exc:
+            reply = {"v": 1, "error": str(exc)}
+        except Exception:
+            log.exception("nbv query failed")
+            reply = {"v": 1, "error": "internal error"}
+        try:
+            query.reply(self.keys.nbv, msgpack.packb(reply, use_bin_type=True))
+        except Exception:
+            log.exception("nbv reply failed")
+
     def reset(self, class_id=None, object_id=None) -> int:
         n = self.worker.reset(class_id, object_id)
         self._notify(
@@ -477,6 +533,7 @@ class Daemon:
                 session.declare_subscriber(self.keys.camera_inputs, self.on_sample),
                 session.declare_queryable(self.keys.state, self.on_state_query),
                 session.declare_queryable(self.keys.reset, self.on_reset_query),
+                session.declare_queryable(self.keys.nbv, self.on_nbv_query),
                 session.liveliness().declare_token(self.keys.alive),
             ]
             if self.ros2 is not None:
@@ -572,5 +629,6 @@ class Daemon:
             "sync_events": dict(self.sync.events),
             "events": dict(self.events),
             "restored_objects": self.restored,
+            "objects_needing_views": self.objects_needing_views(),
             "uptime_s": time.monotonic() - self._started,
         }

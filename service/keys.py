@@ -39,6 +39,10 @@ class Keys:
         return f"{self.root}/estimator/reset"
 
     @property
+    def nbv(self) -> str:
+        return f"{self.root}/estimator/nbv"
+
+    @property
     def alive(self) -> str:
         return f"{self.root}/estimator/alive"
 

@@ -83,6 +83,13 @@ class Settings(BaseSettings):
     reanchor_frames: int = 3  # late frames in a row after which a camera's clock re-anchors
     info_request_s: float = 1.0  # a camera without info is asked for it at most this often
 
+    # next-best-view (estimator/nbv.py): the bin the parts lie in (world frame, z up, the
+    # floor's centre at nbv_bin_center) and the default candidates' distances from it
+    nbv_bin_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    nbv_bin_size: tuple[float, float] = (0.42, 0.32)
+    nbv_bin_wall_height: float = 0.08
+    nbv_distances: tuple[float, ...] = (0.55, 0.75)
+
     @field_validator("cells", "standby_cells", mode="before")
     @classmethod
     def _cell_list(cls, v):

@@ -332,6 +332,16 @@ class FrameSynchronizer:
             cam = self._cams.get(cam_id)
             return cam is not None and cam.info is not None
 
+    def camera(self, cam_id: str | None = None):
+        """The intrinsics (Camera) of a camera, or of the first one with an info when
+        ``cam_id`` is None; None when not known."""
+        with self._lock:
+            for cid in sorted(self._cams) if cam_id is None else [cam_id]:
+                cam = self._cams.get(cid)
+                if cam is not None and cam.info is not None:
+                    return cam.info.camera
+        return None
+
     def cameras(self) -> list[str]:
         with self._lock:
             return sorted(self._cams)

@@ -89,6 +89,22 @@ class EstimatorWorker:
         with self._lock:
             return self._snapshot.get(object_id)
 
+    def nbv_inputs(self, max_components: int = 3) -> tuple[list, dict]:
+        """The tracks (and held detections) as next-best-view inputs, and the appearance index
+        of each of their classes with a rotation mixture (taken under the lock; the scoring
+        itself runs outside it)."""
+        from estimator.nbv import appearance_index, tracks_for_nbv
+
+        with self._lock:
+            tracks = tracks_for_nbv(self.estimator, max_components)
+            banks = {
+                t.obj_id: self.estimator.matcher(t.obj_id).bank
+                for t in tracks
+                if len(t.weights) > 1
+            }
+        catalog = self.estimator.catalog
+        return tracks, {k: appearance_index(b, catalog[k]) for k, b in banks.items()}
+
     def export_state(self) -> dict:
         """The estimator's tracks as picklable data (a deep copy, taken under the lock)."""
         import copy

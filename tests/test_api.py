@@ -155,3 +155,34 @@ def test_every_status_code_a_route_gives_is_documented(daemon):
     assert "503" in spec["paths"]["/readyz"]["get"]["responses"]
     events = spec["paths"]["/events"]["get"]["responses"]["200"]["content"]
     assert list(events) == ["text/event-stream"]
+
+
+def test_next_best_view(daemon):
+    from estimator.nbv import default_candidates
+    from sim.scenes import REALSENSE_1280x720 as CAM
+
+    client = TestClient(create_app(daemon))
+    # no camera info yet: candidates need their intrinsics
+    assert client.post("/nbv", json={}).status_code == 409
+    cam = {"K": CAM.K.reshape(9).tolist(), "width": CAM.width, "height": CAM.height}
+    poses = [c.T_world_cam.reshape(16).tolist() for c in default_candidates(CAM)]
+    body = {"candidates": [{"T_world_cam": T, **cam} for T in poses], "top_k": 5}
+    reply = client.post("/nbv", json=body)
+    assert reply.status_code == 200, reply.text
+    reply = reply.json()
+    assert reply["candidates"] == len(poses) and len(reply["ranked"]) == 5
+    scores = [r["score"] for r in reply["ranked"]]
+    assert scores == sorted(scores, reverse=True) and scores[0] > 0
+    known = {o["object_id"] for o in client.get("/objects").json()}
+    best = reply["ranked"][0]
+    assert best["T_world_cam"] == poses[best["index"]]
+    named = {o["object_id"] for o in best["objects"]}
+    # parts seen in one view only are named after their detection
+    assert named and {o for o in named if not o.startswith("held/")} <= known
+    # a pose that is not rigid, a field that is not known
+    bad = {"candidates": [{"T_world_cam": [2.0] * 16, **cam}]}
+    assert client.post("/nbv", json=bad).status_code == 422
+    assert client.post("/nbv", json={"candidates": [], "top_k": 1}).status_code == 422
+    assert client.post("/nbv", json={"nope": 1}).status_code == 422
+    needing = client.get("/stats").json()["objects_needing_views"]
+    assert set(needing) <= known

@@ -149,3 +149,30 @@ def test_sequence_numbers_round_trip():
     assert decode_camera_pose(encode_camera_pose(5, "c", T, seq=7)).seq == 7
     with pytest.raises(DecodeError, match="seq"):
         decode_camera_pose(_pack({**msgpack.unpackb(encode_camera_pose(5, "c", T)), "seq": -1}))
+
+
+def test_nbv_request_round_trip_and_refusals():
+    import msgpack
+
+    from service.codec import DecodeError, decode_nbv_request, encode_nbv_request
+    from sim.scenes import REALSENSE_1280x720 as CAM
+
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.0, 0.7]
+    request = decode_nbv_request(encode_nbv_request([(T, CAM), (T, None)], "cam1", 3))
+    assert request.camera_id == "cam1" and request.top_k == 3 and len(request.candidates) == 2
+    np.testing.assert_array_equal(request.candidates[0].T_world_cam, T)
+    np.testing.assert_array_equal(request.candidates[0].camera.K, CAM.K)
+    assert request.candidates[1].camera is None
+    assert decode_nbv_request(b"").candidates is None
+    bad = [
+        {"v": 1, "candidates": []},
+        {"v": 1, "candidates": [{"T_world_cam": [1.0] * 16}]},
+        {"v": 1, "candidates": [{"T_world_cam": T.reshape(16).tolist(), "K": [1.0] * 9}]},
+        {"v": 1, "top_k": 0},
+        {"v": 1, "what": 1},
+        {"v": 2},
+    ]
+    for msg in bad:
+        with pytest.raises(DecodeError):
+            decode_nbv_request(msgpack.packb(msg))

@@ -148,6 +148,15 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
             replies = list(session.get("itest/@v1/estimator/state", timeout=5))
             state = msgpack.unpackb(replies[0].ok.payload.to_bytes())
             assert {o["object_id"] for o in state["objects"]} == set(objects)
+            # next-best-view over Zenoh and HTTP: the default hemisphere, the same ranking
+            replies = list(session.get("itest/@v1/estimator/nbv", timeout=10))
+            nbv = msgpack.unpackb(replies[0].ok.payload.to_bytes())
+            assert nbv["v"] == 1 and nbv["candidates"] == 50 and len(nbv["ranked"]) == 10
+            scores = [r["score"] for r in nbv["ranked"]]
+            assert scores == sorted(scores, reverse=True)
+            over_http = _post(f"{base}/nbv", {})
+            assert [r["index"] for r in over_http["ranked"]] == [r["index"] for r in nbv["ranked"]]
+            assert set(get_json(f"{base}/stats")["objects_needing_views"]) <= set(objects)
             # reset one object over Zenoh, seen on the SSE stream; then all over HTTP
             events = []
 
