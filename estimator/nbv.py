@@ -251,7 +251,10 @@ def default_candidates(
                 p = np.deg2rad(polar)
                 d_bin = np.array([np.sin(p) * np.cos(az), np.sin(p) * np.sin(az), np.cos(p)])
                 eye = target + r * (T[:3, :3] @ d_bin)
-                out.append(CandidateView(look_at(eye, target, up), camera))
+                # the image's top towards the camera's side of the bin, as a robot holding
+                # the camera over the bin's edge would (and as the front end was trained)
+                radial = T[:3, :3] @ np.array([np.cos(az), np.sin(az), 0.0])
+                out.append(CandidateView(look_at(eye, target, radial if polar else up), camera))
     return out
 
 
