@@ -555,6 +555,12 @@ def main(args) -> int:
     text = markdown(dataset, scores, meta)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if out.exists():  # the next-best-view section of python -m bench.active stays
+        from bench.active import MARK_BEGIN
+
+        previous = out.read_text()
+        if MARK_BEGIN in previous:
+            text = text.rstrip("\n") + "\n\n" + MARK_BEGIN + previous.split(MARK_BEGIN, 1)[1]
     out.write_text(text)
     doc = {"meta": meta, "scores": scores}
     out.with_suffix(".json").write_text(
