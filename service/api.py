@@ -98,7 +98,9 @@ class NbvCandidateModel(BaseModel):
 class NbvRequestModel(BaseModel):
     """Candidates to rank (omitted: a hemisphere over the bin at the working distances)."""
 
-    candidates: list[NbvCandidateModel] | None = Field(None, min_length=1, max_length=1000)
+    # at most 1000 (checked with the rest of the request, 422); the body's size limit
+    # (POSEFUSE_MAX_BODY_BYTES, 64 KiB: about 100 candidates) applies first (413)
+    candidates: list[NbvCandidateModel] | None = Field(None, min_length=1)
     camera_id: str | None = Field(None, min_length=1, max_length=256)
     top_k: StrictInt = Field(10, ge=1, le=1000)
     model_config = ConfigDict(
@@ -380,7 +382,7 @@ def create_app(daemon) -> FastAPI:
             **(UNAUTHORIZED if token else {}),
         },
     )
-    def nbv(request: NbvRequestModel | None = None) -> dict:
+    def nbv(request: NbvRequestModel | None = None):
         from service.codec import DecodeError, nbv_request_from_dict
 
         body = (request or NbvRequestModel()).model_dump(exclude_none=True)
@@ -389,8 +391,9 @@ def create_app(daemon) -> FastAPI:
                 del c[k]
         try:
             parsed = nbv_request_from_dict(body)
-        except DecodeError as exc:
-            raise HTTPException(status_code=422, detail=str(exc)) from None
+        except DecodeError as exc:  # as the schema's own 422s: a list of issues
+            issue = {"loc": ["body", "candidates"], "msg": str(exc), "type": "value_error"}
+            return JSONResponse(status_code=422, content={"detail": [issue]})
         try:
             return daemon.nbv(parsed)
         except ValueError as exc:

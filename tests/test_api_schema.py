@@ -5,6 +5,7 @@ give a 5xx. ``/events`` is left out: it is an endless stream, tested in test_api
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
+from schemathesis.specs.openapi.checks import positive_data_acceptance
 
 from estimator.tracker import MultiViewEstimator
 from service.api import create_app
@@ -41,4 +42,9 @@ schema = schemathesis.pytest.from_fixture("api_schema").exclude(path="/events")
     suppress_health_check=list(HealthCheck),
 )
 def test_api_conforms_to_its_openapi_document(case):
-    case.call_and_validate()
+    excluded = []
+    if case.path == "/nbv":
+        # a 4x4 list that is not a rigid transform cannot be told from one by a JSON schema:
+        # /nbv refuses it with 422 (test_api.py) where the schema alone would accept it
+        excluded.append(positive_data_acceptance)
+    case.call_and_validate(excluded_checks=excluded)
