@@ -32,7 +32,12 @@ def register(subparsers) -> None:
     src.add_argument("--dataset", help="BOP dataset folder: its recorded views are candidates")
     p.add_argument("--scenes", type=int, default=1, help="bins (--profile) or scenes to run")
     p.add_argument("--seed", type=int, default=0, help="scene seed (--profile)")
-    p.add_argument("--policy", choices=("nbv", "random", "sweep"), default="nbv")
+    p.add_argument(
+        "--policy",
+        choices=("nbv", "random", "sweep"),
+        default="nbv",
+        help="how the next view is chosen: next-best-view, a seeded random order, the path",
+    )
     p.add_argument("--budget", type=int, default=8, help="views at most")
     p.add_argument("--confidence", type=float, default=None, help="stop at this confidence")
     p.add_argument("--model", default=DEFAULT_MODEL, help="front-end ONNX model")

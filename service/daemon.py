@@ -403,7 +403,7 @@ class Daemon:
     def objects_needing_views(self) -> list[str]:
         from estimator.nbv import needs_view
 
-        tracks, _ = self.worker.nbv_inputs()
+        tracks = self.worker.nbv_tracks()
         return [t.key for t in tracks if not t.key.startswith("held/") and needs_view(t)]
 
     def on_nbv_query(self, query) -> None:

@@ -97,13 +97,20 @@ class EstimatorWorker:
 
         with self._lock:
             tracks = tracks_for_nbv(self.estimator, max_components)
-            banks = {
-                t.obj_id: self.estimator.matcher(t.obj_id).bank
-                for t in tracks
-                if len(t.weights) > 1
-            }
+            # only banks already loaded: loading one takes seconds, and not under this lock
+            loaded = self.estimator.banks()
+        wanted = {t.obj_id for t in tracks if len(t.weights) > 1}
         catalog = self.estimator.catalog
-        return tracks, {k: appearance_index(b, catalog[k]) for k, b in banks.items()}
+        return tracks, {
+            k: appearance_index(b, catalog[k]) for k, b in loaded.items() if k in wanted
+        }
+
+    def nbv_tracks(self) -> list:
+        """The tracks as next-best-view inputs, without the appearance indices (cheap)."""
+        from estimator.nbv import tracks_for_nbv
+
+        with self._lock:
+            return tracks_for_nbv(self.estimator)
 
     def export_state(self) -> dict:
         """The estimator's tracks as picklable data (a deep copy, taken under the lock)."""
