@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.geometry import rotation_angle, so3_exp, so3_log, so3_right_jacobian_inv
+from estimator.geometry import rotation_angle, so3_exp, so3_jacobian_inv_gram, so3_log
 
 UNIFORM_ANGLE_VAR = np.pi**2 / 3
 
@@ -208,14 +208,15 @@ class RotationMixture:
         for _ in range(cfg.max_iterations):
             R_eq = self._equivalents(comp, R_members, R_mean)
             r = so3_log(R_eq @ R_mean.T)  # (M, 3)
-            J = so3_right_jacobian_inv(r)  # (M, 3, 3)
-            H = np.einsum("m,mji,mjk->ik", conf, J, J) + 1e-9 * np.eye(3)
-            g = np.einsum("m,mji,mj->i", conf, J, r)
+            # normal equations with J_k = J_r^-1(r_k): J^T J in closed form, and J^T r = r
+            H = np.einsum("m,mij->ij", conf, so3_jacobian_inv_gram(r)) + 1e-9 * np.eye(3)
+            g = conf @ r
             delta = np.linalg.solve(H, g)
-            R_new = so3_exp(delta) @ R_mean
-            self._moved(comp, R_mean, R_new)
-            R_mean = R_new
-            if np.linalg.norm(delta) < cfg.tolerance_rad:
+            R_mean = so3_exp(delta) @ R_mean
+            step = float(np.linalg.norm(delta))
+            # exp(delta) turns the mean by |delta| (at most; less only beyond pi)
+            self._moved_by(comp, step)
+            if step < cfg.tolerance_rad:
                 break
         # re-orthonormalise against drift
         U, _, Vt = np.linalg.svd(R_mean)
@@ -256,7 +257,10 @@ class RotationMixture:
 
     @staticmethod
     def _moved(comp: RotationComponent, R_old: np.ndarray, R_new: np.ndarray) -> None:
+        RotationMixture._moved_by(comp, float(rotation_angle(R_new @ R_old.T)))
+
+    @staticmethod
+    def _moved_by(comp: RotationComponent, step: float) -> None:
         if comp._selection is not None:
             k, margin, moved = comp._selection
-            step = float(rotation_angle(R_new @ R_old.T))
             comp._selection = (k, margin, moved + step)

@@ -111,23 +111,27 @@ def crop_roi(
     s = (z / bank.z_r) * (cfg.focal / f)  # RoI pixels per image pixel
     c = (l_r - 1) / 2.0
     A = np.array([[s, 0.0, c - s * u], [0.0, s, c - s * v]])
-    roi = cv2.warpAffine(
-        cv2.cvtColor(image, cv2.COLOR_RGB2BGR),
-        A,
-        (l_r, l_r),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
+    # warp, then swap channels: the same pixels as converting the whole image first, at the
+    # cost of a RoI instead of a 1280x720 frame per object
+    roi = cv2.cvtColor(
+        cv2.warpAffine(
+            image, A, (l_r, l_r), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        ),
+        cv2.COLOR_RGB2BGR,
     )
     if mask is None:
         return roi, None
+    # warped as 0/1 and scaled on the RoI: nearest-neighbour sampling picks the same pixels
+    mask01 = mask.view(np.uint8) if mask.dtype == bool else (mask != 0).astype(np.uint8)
     m = cv2.warpAffine(
-        mask.astype(np.uint8) * 255,
+        np.ascontiguousarray(mask01),
         A,
         (l_r, l_r),
         flags=cv2.INTER_NEAREST,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=0,
     )
+    m *= 255
     if dilation_px > 0:
         k = 2 * dilation_px + 1
         m = cv2.dilate(m, np.ones((k, k), np.uint8))
@@ -146,9 +150,9 @@ class RotationMatcher:
         )
         L = cfg.roi_size
         self._index = (
-            bank.feat_label.astype(np.int64) * L * L
-            + bank.feat_y.astype(np.int64) * L
-            + bank.feat_x.astype(np.int64)
+            bank.feat_label.astype(np.intp) * L * L
+            + bank.feat_y.astype(np.intp) * L
+            + bank.feat_x.astype(np.intp)
         )  # (N, F) into the flattened (8, L, L) response maps
         self._weight = bank.feat_valid / np.maximum(bank.feat_valid.sum(1, keepdims=True), 1) / 4
 
@@ -156,19 +160,22 @@ class RotationMatcher:
         """(8, L, L) uint8 LINE-2D responses of a RoI."""
         quantized = self._modality.process(roi, roi_mask).quantize()  # (L, L) one bit per pixel
         T = self.bank.config.pyramid_T[0]
-        spread = np.zeros_like(quantized)
-        padded = np.pad(quantized, T)
+        # OR over a T x T window, one axis at a time (the same bits as the T^2 shifts)
         L = quantized.shape[0]
         lo = -(T // 2)
+        padded = np.pad(quantized, T)
+        rows = np.zeros((L + 2 * T, L), quantized.dtype)
+        for dx in range(lo, lo + T):
+            rows |= padded[:, T + dx : T + dx + L]
+        spread = np.zeros_like(quantized)
         for dy in range(lo, lo + T):
-            for dx in range(lo, lo + T):
-                spread |= padded[T + dy : T + dy + L, T + dx : T + dx + L]
+            spread |= rows[T + dy : T + dy + L]
         return SIMILARITY_LUT[:, spread]
 
     def scores(self, roi: np.ndarray, roi_mask: np.ndarray | None) -> np.ndarray:
         """(N,) similarity in [0, 1] of every template at the RoI centre."""
         response = self.response_maps(roi, roi_mask).reshape(-1)
-        return (response[self._index] * self._weight).sum(1)
+        return (np.take(response, self._index) * self._weight).sum(1)
 
     def measure(
         self,
@@ -195,9 +202,8 @@ def select_hypotheses(
 
     scores: (N,) similarity per template; R_templates: (N, 3, 3) their R_cam_obj.
     """
-    order = np.argsort(-scores, kind="stable")
     picked: list[int] = []
-    for k in order:
+    for k in _best_first(scores, config.min_confidence):
         if scores[k] < config.min_confidence or len(picked) >= config.top_k:
             break
         R = R_templates[k]
@@ -208,3 +214,18 @@ def select_hypotheses(
                 continue
         picked.append(int(k))
     return [RotationMeasurement(R_ray @ R_templates[k], float(scores[k]), k) for k in picked]
+
+
+def _best_first(scores: np.ndarray, floor: float, head: int = 64):
+    """Indices of ``scores`` (N,) at or above ``floor``, highest first, ties by index (the order
+    of a stable sort of ``-scores``). Only the ``head`` best are sorted unless a caller reads
+    past them: the full sort of every template was a tenth of the scoring time."""
+    above = np.flatnonzero(scores >= floor)
+    if len(above) > head:
+        kth = -np.partition(-scores[above], head - 1)[head - 1]  # the head-th best score
+        first = above[scores[above] > kth]  # every index above it: exact, whatever the ties
+        rest = above[scores[above] <= kth]
+    else:
+        first, rest = above, above[:0]
+    yield from first[np.lexsort((first, -scores[first]))]
+    yield from rest[np.lexsort((rest, -scores[rest]))]

@@ -706,9 +706,11 @@ class MultiViewEstimator:
             T[:3, :3] = best.R_world_obj
             cov[3:, 3:] = best.cov
             weights = track.mixture.weights
+            components = track.mixture.components
+            quats = Rotation.from_matrix(np.array([c.R_world_obj for c in components])).as_quat()
             hypotheses = tuple(
-                RotationHypothesis(Rotation.from_matrix(c.R_world_obj).as_quat(), float(w), c.n)
-                for c, w in zip(track.mixture.components, weights, strict=True)
+                RotationHypothesis(q, float(w), c.n)
+                for c, w, q in zip(components, weights, quats, strict=True)
             )
             mean_similarity = best.confidence / best.n
             confidence = float(weights.max() * mean_similarity)

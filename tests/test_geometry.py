@@ -110,6 +110,14 @@ def test_log_exp_roundtrip(w):
 
 
 @FAST
+@given(rotvecs(), st.sampled_from([1.0, 1e-3, 1e-9]))
+def test_exp_of_one_vector_equals_the_batched_path(w, scale):
+    # one (3,) vector takes a scalar path; the batch path must give the same rotation
+    w = np.asarray(w) * scale
+    np.testing.assert_allclose(g.so3_exp(w), g.so3_exp(w[None])[0], rtol=0, atol=4e-16)
+
+
+@FAST
 @given(unit_axes(), st.sampled_from([1e-12, 1e-8, 1e-4, 0.01]))
 def test_log_tiny_angles_relative_accuracy(axis, angle):
     w = axis * angle
@@ -215,6 +223,25 @@ def test_jacobian_identities(w):
     np.testing.assert_allclose(g.so3_left_jacobian_inv(w) @ Jl, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(g.so3_right_jacobian_inv(w) @ Jr, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(Jl @ g.so3_left_jacobian_inv(w), np.eye(3), atol=1e-12)
+
+
+@FAST
+@given(rotvecs(max_angle=PI))
+def test_inverse_jacobian_gram_closed_form(w):
+    # the normal matrix the mixture's refinement uses, against the explicit products
+    Jl_inv, Jr_inv = g.so3_left_jacobian_inv(w), g.so3_right_jacobian_inv(w)
+    gram = g.so3_jacobian_inv_gram(w)
+    np.testing.assert_allclose(gram, Jr_inv.T @ Jr_inv, atol=1e-12)
+    np.testing.assert_allclose(gram, Jl_inv.T @ Jl_inv, atol=1e-12)
+    # and J^T r = r, which makes the gradient a weighted sum of the residuals
+    np.testing.assert_allclose(Jr_inv.T @ w, w, atol=1e-12)
+
+
+def test_inverse_jacobian_gram_batched():
+    w = np.random.default_rng(3).normal(size=(4, 5, 3))
+    Jr_inv = g.so3_right_jacobian_inv(w)
+    expected = np.swapaxes(Jr_inv, -1, -2) @ Jr_inv
+    np.testing.assert_allclose(g.so3_jacobian_inv_gram(w), expected, atol=1e-12)
 
 
 @pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-6, 0.01 - 1e-12, 0.01, 0.01 + 1e-12])

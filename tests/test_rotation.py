@@ -2,10 +2,12 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimator.geometry import random_rotations, rotation_angle
 from estimator.render import DirectionalLight, Lighting, Renderer
-from estimator.rotation import RotationMatcher, crop_roi, ray_correction
+from estimator.rotation import RotationMatcher, _best_first, crop_roi, ray_correction
 from estimator.templates import (
     TEMPLATE_LIGHTS_CAM,
     TEMPLATE_MATERIAL,
@@ -107,3 +109,16 @@ def test_top_k_hypotheses_are_distinct(tube, tube_bank):
     for i in range(3):
         for j in range(i):
             assert rotation_angle(hyp[i].R_cam_obj.T @ hyp[j].R_cam_obj) >= np.deg2rad(15) - 1e-9
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.integers(0, 12), min_size=1, max_size=200),
+    st.floats(0.0, 1.0),
+    st.integers(1, 80),
+)
+def test_best_first_is_a_stable_sort_above_the_floor(ticks, floor, head):
+    # coarse scores make many ties, at the head's boundary too
+    scores = np.array(ticks, float) / 12
+    expected = [int(k) for k in np.argsort(-scores, kind="stable") if scores[k] >= floor]
+    assert [int(k) for k in _best_first(scores, floor, head)] == expected
