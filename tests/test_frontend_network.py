@@ -5,10 +5,17 @@ import shutil
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimator.errors import PosefuseError
 from estimator.frontend.network import ModelError, NetworkFrontend, load_card
-from estimator.frontend.voting import VotingConfig, vote_instances
+from estimator.frontend.voting import (
+    VotingConfig,
+    _least_squares_center,
+    _percentile_90,
+    vote_instances,
+)
 
 
 def _field(centers, size=60, noise=0.0, seed=0):
@@ -96,3 +103,27 @@ def test_bad_input_gives_one_clear_error(tiny_model, robi_catalog, tmp_path):
     (tmp_path / "bad.json").write_text(tiny_model.with_suffix(".json").read_text())
     with pytest.raises(ModelError, match="onnxruntime cannot load it"):
         NetworkFrontend(tmp_path / "bad.onnx", robi_catalog)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(0.0, 100.0), min_size=1, max_size=300))
+def test_percentile_90_equals_numpys(values):
+    x = np.array(values)
+    assert _percentile_90(x) == pytest.approx(float(np.percentile(x, 90)), rel=1e-12, abs=1e-12)
+
+
+def test_least_squares_center_equals_the_sum_of_projections():
+    rng = np.random.default_rng(5)
+    center = np.array([40.0, 25.0])
+    p = rng.uniform(0, 80, (200, 2))
+    v = center - p + rng.normal(0, 0.5, (200, 2))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    proj = np.eye(2)[None] - v[:, :, None] * v[:, None, :]  # (n, 2, 2) I - v v^T
+    A = proj.sum(0)
+    x = np.linalg.solve(A, np.einsum("nij,nj->i", proj, p))
+    r = np.einsum("nij,nj->ni", proj, x - p)
+    cov = (r * r).sum() / (len(p) - 2) * np.linalg.inv(A)
+    got_x, got_cov = _least_squares_center(p, v)
+    np.testing.assert_allclose(got_x, x, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(got_cov, cov, rtol=1e-10)
+    assert np.linalg.norm(got_x - center) < 0.5

@@ -55,14 +55,29 @@ def _intersections(p: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray) -
 
 
 def _least_squares_center(p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Point closest to all lines (p_k, v_k) and its covariance from the residual spread."""
-    proj = np.eye(2)[None] - v[:, :, None] * v[:, None, :]  # (n, 2, 2) I - v v^T
-    A = proj.sum(0)
-    b = np.einsum("nij,nj->i", proj, p)
+    """Point closest to all lines (p_k, v_k) and its covariance from the residual spread.
+
+    With unit v: A = sum (I - v v^T) = n I - V^T V, b = sum (I - v v^T) p = sum p - V^T (v.p),
+    and the offset of x from line k is (x - p_k) - v_k (v_k . (x - p_k))."""
+    vp = np.einsum("ni,ni->n", v, p)
+    A = len(p) * np.eye(2) - v.T @ v
+    b = p.sum(0) - v.T @ vp
     x = np.linalg.solve(A, b)
-    r = np.einsum("nij,nj->ni", proj, x - p)  # perpendicular offsets
+    e = x - p
+    r = e - v * np.einsum("ni,ni->n", v, e)[:, None]  # perpendicular offsets
     sigma2 = float((r * r).sum() / max(len(p) - 2, 1))
     return x, sigma2 * np.linalg.inv(A)
+
+
+def _percentile_90(x: np.ndarray) -> float:
+    """np.percentile(x, 90) (linear interpolation) by partial sorting: numpy's general
+    percentile was an eighth of the voting time at these sizes."""
+    pos = 0.9 * (len(x) - 1)
+    lo = int(np.floor(pos))
+    hi = min(lo + 1, len(x) - 1)
+    part = np.partition(x, (lo, hi))
+    a, b, t = float(part[lo]), float(part[hi]), pos - lo
+    return a + (b - a) * t if t < 0.5 else b - (b - a) * (1.0 - t)
 
 
 def vote_instances(
@@ -96,9 +111,12 @@ def vote_instances(
             sub = rng.choice(len(p), config.max_scoring_pixels, replace=False)
         else:
             sub = np.arange(len(p))
-        d = h[:, None, :] - p[None, sub, :]  # (K, n_sub, 2)
-        norm = np.linalg.norm(d, axis=2)
-        cos = np.einsum("knc,nc->kn", d, v[sub]) / np.maximum(norm, 1e-9)
+        # (K, n_sub) offsets from the scored pixels to the hypotheses, x and y apart
+        ps, vs = p[sub], v[sub]
+        dx = h[:, 0, None] - ps[None, :, 0]
+        dy = h[:, 1, None] - ps[None, :, 1]
+        norm = np.sqrt(dx * dx + dy * dy)
+        cos = (dx * vs[None, :, 0] + dy * vs[None, :, 1]) / np.maximum(norm, 1e-9)
         counts = (cos > config.inlier_cos).sum(1)
         best = int(np.argmax(counts))
         d = h[best][None] - p
@@ -118,7 +136,7 @@ def vote_instances(
         # three times too large, and their pixels were lost to the first instance)
         dist = np.linalg.norm(d, axis=1)
         core = dist[strict] if strict.sum() >= config.min_inliers else dist[inliers]
-        radius = config.member_radius_factor * np.percentile(core, 90) + 2.0
+        radius = config.member_radius_factor * _percentile_90(core) + 2.0
         members = (((cos > config.member_cos) | inliers) & (dist <= radius)) | (dist < 3.0)
         cov = cov * config.cov_scale + np.eye(2) * config.min_center_var
         out.append(VotedInstance(center, cov, remaining[members], int(members.sum())))
