@@ -128,19 +128,18 @@ def predict(
     Returns:
         uv: (N, 2) pixels; J: (N, 2, 3) d uv / d t_world_obj; z: (N,) depth in each camera.
     """
-    p = np.einsum("nij,j->ni", obs.R_cam_world, t_world_obj) + obs.t_cam_world  # (N, 3)
+    R = obs.R_cam_world
+    p = R @ t_world_obj + obs.t_cam_world  # (N, 3)
     z = p[:, 2]
     zs = np.where(np.abs(z) < 1e-12, 1e-12, z)
-    x, y = p[:, 0] / zs, p[:, 1] / zs
+    xy = p[:, :2] / zs[:, None]  # (N, 2)
     K = obs.K
+    x, y = xy[:, 0], xy[:, 1]
     uv = np.stack([K[:, 0, 0] * x + K[:, 0, 1] * y + K[:, 0, 2], K[:, 1, 1] * y + K[:, 1, 2]], 1)
-    # d(x, y)/dp = [[1/z, 0, -x/z], [0, 1/z, -y/z]]; duv/d(x, y) = K[:2, :2]
-    dxy = np.zeros((len(z), 2, 3))
-    dxy[:, 0, 0] = 1 / zs
-    dxy[:, 0, 2] = -x / zs
-    dxy[:, 1, 1] = 1 / zs
-    dxy[:, 1, 2] = -y / zs
-    J = np.einsum("nab,nbc,ncd->nad", K[:, :2, :2], dxy, obs.R_cam_world)
+    # d(x, y)/dp = [[1/z, 0, -x/z], [0, 1/z, -y/z]], so d(x, y)/dt = (R[:2] - (x, y) R[2]) / z;
+    # duv/d(x, y) = K[:2, :2]
+    dxy_dt = (R[:, :2, :] - xy[:, :, None] * R[:, 2:3, :]) / zs[:, None, None]  # (N, 2, 3)
+    J = K[:, :2, :2] @ dxy_dt
     return uv, J, z
 
 
