@@ -210,6 +210,8 @@ def triangulate_pair(
     if not (np.isfinite(sa) and sa > 0 and sb > 0):
         return None
     depth_b = float(b.T_cam_world[2, :3] @ X + b.T_cam_world[2, 3])
+    if not depth_b > MIN_DEPTH:  # rays that meet only at a camera centre found nothing
+        return None
     prior_cov = np.eye(3) * (config.prior_rel_sigma * depth_b) ** 2
     obs = pair_observations(a, b)
     est = estimate_translation(obs, X, prior_cov)

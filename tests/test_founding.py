@@ -63,6 +63,14 @@ def test_two_views_triangulate_the_point_without_the_box():
     np.testing.assert_allclose(est.t_world_obj, p, atol=1e-6)
 
 
+def test_rays_from_one_camera_centre_found_nothing():
+    # two views from the same pose, two different pixels: the rays meet only at the camera
+    # centre, which is no place for a part (this once raised a singular-matrix error)
+    a = _held(_T_cam_world(0.0), np.array([0.0, 0.0625, 0.0]), 1)
+    b = _held(_T_cam_world(0.0, target=(0.02, 0.01, 0.0)), np.array([0.0, 0.009765625, 0.0]), 2)
+    assert triangulate_pair(a, b, FoundingConfig()) is None
+
+
 def test_rays_that_miss_or_boxes_that_contradict_are_gated():
     p = np.array([0.0, 0.0, 0.0])
     a = _held(_T_cam_world(-0.15), p, 1)
