@@ -254,7 +254,6 @@ class Daemon:
         return hmac.compare_digest(token, expected.get_secret_value().encode())
 
     def on_reset_query(self, query) -> None:
-        import msgpack
 
         try:
             attachment = query.attachment.to_bytes() if query.attachment is not None else None
@@ -273,10 +272,17 @@ class Daemon:
         except Exception:
             log.exception("reset query failed")
             reply = {"v": 1, "error": "internal error"}
+        self._reply(query, self.keys.reset, reply)
+
+    @staticmethod
+    def _reply(query, key: str, reply: dict) -> None:
+        """Answer a queryable with a msgpack map; a failed reply is logged, never raised."""
+        import msgpack
+
         try:
-            query.reply(self.keys.reset, msgpack.packb(reply, use_bin_type=True))
+            query.reply(key, msgpack.packb(reply, use_bin_type=True))
         except Exception:
-            log.exception("reset reply failed")
+            log.exception("reply on %s failed", key)
 
     # ------------------------------------------------------------------ listeners (SSE)
     def subscribe(self, maxsize: int = 256) -> queue.Queue:
@@ -407,7 +413,6 @@ class Daemon:
         return [t.key for t in tracks if not t.key.startswith("held/") and needs_view(t)]
 
     def on_nbv_query(self, query) -> None:
-        import msgpack
 
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -417,10 +422,7 @@ class Daemon:
         except Exception:
             log.exception("nbv query failed")
             reply = {"v": 1, "error": "internal error"}
-        try:
-            query.reply(self.keys.nbv, msgpack.packb(reply, use_bin_type=True))
-        except Exception:
-            log.exception("nbv reply failed")
+        self._reply(query, self.keys.nbv, reply)
 
     def reset(self, class_id=None, object_id=None) -> int:
         n = self.worker.reset(class_id, object_id)
