@@ -64,3 +64,19 @@ def full_res_dataset(tmp_path_factory, robi_catalog):
         n_scenes=1, seed=77, scene=SceneSpec(n_instances=(6, 8), n_views=FULL_RES_VIEWS)
     )
     return generate_dataset(robi_catalog, root, config, show_progress=False)
+
+
+def extra_shared(*parts: str):
+    """A path under the folder ``POSEFUSE_SHARED`` names (the project's ../shared: real meshes,
+    reference figures). A test that needs it is an *extra* (its name says so): skipped where the
+    variable is unset, failed where it is set and the path is missing; it never falls back to
+    something else."""
+    from pathlib import Path
+
+    root = os.environ.get("POSEFUSE_SHARED")
+    if not root:
+        pytest.skip("extra: set POSEFUSE_SHARED to the shared folder (.ci/run does)")
+    path = Path(root, *parts)
+    if not path.exists():
+        pytest.fail(f"POSEFUSE_SHARED={root}: {path} is missing")
+    return path

@@ -1,10 +1,8 @@
 """The symmetries listed in docs/objects.md, for the committed catalog and the real meshes."""
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import extra_shared
 
 from estimator.objects import load_catalog, load_mesh, mesh_diameter
 from estimator.symmetry import detect_symmetries
@@ -28,11 +26,6 @@ REAL = {
     "gear": (116.3, "2-fold about z"),
     "bracket": (139.4, "2-fold about [0.708, -0.706, 0.005]"),
 }
-REAL_DIR = Path(
-    os.environ.get(
-        "POSEFUSE_SHARED_OBJECTS", Path(__file__).resolve().parents[2] / "shared" / "objects"
-    )
-)
 
 
 def test_committed_catalog_has_the_documented_symmetries():
@@ -57,10 +50,9 @@ def test_committed_catalog_is_what_the_generator_writes():
 
 
 @pytest.mark.parametrize("name", list(REAL))
-def test_real_mesh_symmetries(name):
-    path = REAL_DIR / f"{name}.stl"
-    if not path.is_file():
-        pytest.skip(f"{path} not present (set POSEFUSE_SHARED_OBJECTS to the meshes' folder)")
+def test_extra_real_mesh_symmetries(name):
+    """Extra: the real meshes of POSEFUSE_SHARED/objects (skipped where it is unset)."""
+    path = extra_shared("objects", f"{name}.stl")
     mesh = load_mesh(path, "mm")
     diameter = mesh_diameter(mesh)
     expected_diameter, expected = REAL[name]
