@@ -176,3 +176,84 @@ def test_nbv_request_round_trip_and_refusals():
     for msg in bad:
         with pytest.raises(DecodeError):
             decode_nbv_request(msgpack.packb(msg))
+
+
+def _png(chunks: list[tuple[bytes, bytes]]) -> bytes:
+    import struct
+    import zlib
+
+    out = b"\x89PNG\r\n\x1a\n"
+    for kind, payload in chunks:
+        crc = zlib.crc32(kind + payload) & 0xFFFFFFFF
+        out += struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", crc)
+    return out
+
+
+def _ihdr(width: int, height: int) -> tuple[bytes, bytes]:
+    import struct
+
+    return b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+
+
+def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding():
+    """A progressive JPEG repeating one scan 20000 times (minutes of CPU for 0.2 MB, every
+    header true), thousands of segments, PNGs of tiny chunks, of compressed text, or with image
+    data that deflate cannot turn into the declared image: each refused with its own code."""
+    import zlib
+
+    import cv2
+    from hostile import png_many_chunks, progressive_scan_bomb
+
+    from bench.bombs import image_message
+    from service.codec import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
+
+    def refused(stream, encoding, size):
+        with pytest.raises(DecodeError) as info:
+            decode_image(image_message(stream, encoding, 1, declared=size), max_pixels=4096**2)
+        return info.value.code
+
+    assert refused(progressive_scan_bomb(), "jpeg", (4096, 4096)) == "jpeg_scans"
+    just_over = progressive_scan_bomb(64, 64, MAX_JPEG_SCANS - 9)  # 10 scans + repeats
+    assert refused(just_over, "jpeg", (64, 64)) == "jpeg_scans"
+    plain = cv2.imencode(".jpg", np.zeros((64, 64, 3), np.uint8))[1].tobytes()
+    comments = b"".join(b"\xff\xfe\x00\x04ab" for _ in range(MAX_JPEG_SEGMENTS))
+    assert refused(plain[:2] + comments + plain[2:], "jpeg", (64, 64)) == "jpeg_segments"
+
+    assert refused(png_many_chunks(64, 64, 200_000), "png", (64, 64)) == "png_chunks"
+    raw = b"".join(b"\0" + bytes(64 * 3) for _ in range(64))
+    idat = (b"IDAT", zlib.compress(raw))
+    text = (b"zTXt", b"k\0\0" + np.random.default_rng(0).bytes(70_000))
+    assert refused(_png([_ihdr(64, 64), text, idat, (b"IEND", b"")]), "png", (64, 64)) == (
+        "png_chunks"
+    )
+    small = _png([_ihdr(4096, 4096), idat, (b"IEND", b"")])  # 38 kB of pixels for 50 MB
+    assert refused(small, "png", (4096, 4096)) == "png_ratio"
+    padded = (b"IDAT", zlib.compress(raw) + bytes(100_000))
+    assert refused(_png([_ihdr(64, 64), padded, (b"IEND", b"")]), "png", (64, 64)) == (
+        "png_ratio"
+    )
+
+
+def test_what_cameras_and_encoders_write_passes_the_structure_checks():
+    import cv2
+
+    from service.codec import check_decode_cost
+
+    rng = np.random.default_rng(1)
+    for h, w in ((1, 1), (37, 53), (720, 1280), (2160, 3840)):
+        for image in (np.zeros((h, w, 3), np.uint8), rng.integers(0, 256, (h, w, 3), np.uint8)):
+            for params in (
+                [],
+                [cv2.IMWRITE_JPEG_PROGRESSIVE, 1],
+                [cv2.IMWRITE_JPEG_PROGRESSIVE, 1, cv2.IMWRITE_JPEG_OPTIMIZE, 1],
+                [cv2.IMWRITE_JPEG_RST_INTERVAL, 4],
+            ):
+                check_decode_cost(cv2.imencode(".jpg", image, params)[1].tobytes(), "jpeg")
+            for level in (0, 1, 9):
+                data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, level])[1]
+                check_decode_cost(data.tobytes(), "png")
+            check_decode_cost(cv2.imencode(".png", image[..., 0])[1].tobytes(), "png")
+            wide = image.astype(np.uint16) * 257
+            check_decode_cost(cv2.imencode(".png", wide)[1].tobytes(), "png")
+            rgba = np.concatenate([image, image[..., :1]], axis=2)
+            check_decode_cost(cv2.imencode(".png", rgba)[1].tobytes(), "png")
