@@ -1,8 +1,9 @@
 """The HTTP API, in the daemon's process: thin routes over the daemon's snapshot and counters.
 
 Errors become HTTP codes here only, and every code a route can give is in the OpenAPI document:
-an unknown object 404, a bad request 422 (non-finite numbers, booleans for integers and unknown
-fields included), a missing or wrong API token 401, a body over ``max_body_bytes`` 413.
+an unknown object 404, a body that is not UTF-8 JSON 400, a JSON body that does not match the
+schema 422 (non-finite numbers, booleans for integers and unknown fields included), a missing or
+wrong API token 401 (counted in the daemon's ``events``), a body over ``max_body_bytes`` 413.
 """
 
 from __future__ import annotations
@@ -229,15 +230,23 @@ def _json_safe(value):
 
 
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    """422 with the documented shape; the offending input is not echoed back (it may be huge or
-    not representable in JSON, as NaN is)."""
+    """400 for a body that cannot be parsed (not JSON, not UTF-8), else 422 with the documented
+    shape; the offending input is not echoed back (it may be huge or not representable in JSON,
+    as NaN is)."""
+    errors = exc.errors()
+    unparsable = [e for e in errors if e.get("type") == "json_invalid"]
+    if unparsable:
+        where = unparsable[0].get("ctx", {}).get("error", "invalid JSON")
+        return JSONResponse(
+            status_code=400, content={"detail": f"the body is not UTF-8 JSON ({where})"}
+        )
     detail = [
         {
             "loc": [_json_safe(x) if isinstance(x, (int, str)) else str(x) for x in e["loc"]],
             "msg": str(e.get("msg", "")),
             "type": str(e.get("type", "")),
         }
-        for e in exc.errors()
+        for e in errors
     ]
     return JSONResponse(status_code=422, content={"detail": detail})
 
@@ -301,11 +310,16 @@ def create_app(daemon) -> FastAPI:
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _serve_docs_locally(app)
 
-    def require_token(credentials: BearerCredentials) -> None:
+    def require_token(request: Request, credentials: BearerCredentials) -> None:
         if token is None:
             return
         given = credentials.credentials.encode() if credentials else b""
         if not hmac.compare_digest(given, token.encode()):
+            events = getattr(daemon, "events", None)
+            if events is not None:
+                events["http_unauthorized"] += 1
+                if request.url.path.endswith("/reset"):
+                    events["reset_unauthorized"] += 1
             raise HTTPException(
                 status_code=401,
                 detail="missing or wrong API token",

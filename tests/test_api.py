@@ -102,7 +102,6 @@ def test_docs_page_loads_its_assets_locally_not_from_a_cdn(daemon):
         '{"object_id": 5}',
         '{"clas_id": 1}',
         "[1, 2]",
-        "not json",
     ],
 )
 def test_bad_reset_bodies_are_422_and_change_nothing(daemon, body):
@@ -112,6 +111,21 @@ def test_bad_reset_bodies_are_422_and_change_nothing(daemon, body):
     assert r.status_code == 422, r.text
     assert isinstance(r.json()["detail"], list) and r.json()["detail"][0]["msg"]
     assert client.get("/objects").json() == before
+
+
+@pytest.mark.parametrize("route", ["/reset", "/nbv"])
+@pytest.mark.parametrize(
+    "body", [b"not json", b'{"class_id": 1', b"{'class_id': 1}", b'{"object_id": "\xff\xfe"}']
+)
+def test_bodies_that_are_not_utf8_json_are_400_as_documented(daemon, route, body):
+    client = TestClient(create_app(daemon))
+    before = client.get("/objects").json()
+    r = client.post(route, content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 400, r.text
+    assert isinstance(r.json()["detail"], str) and r.json()["detail"]
+    assert client.get("/objects").json() == before
+    spec = client.get("/openapi.json").json()
+    assert "400" in spec["paths"][route]["post"]["responses"]
 
 
 def test_body_size_limit(daemon):
@@ -141,8 +155,12 @@ def test_api_token_guards_mutating_routes(daemon):
     assert client.post("/reset", headers=wrong).status_code == 401
     assert client.get("/events", params={"max_events": 1}).status_code == 401
     assert len(client.get("/objects").json()) == n
+    events = daemon.stats_dict()["events"]
+    assert events["reset_unauthorized"] == 2  # counted as the Zenoh reset query's are
+    assert events["http_unauthorized"] == 3  # /events too
     good = {"Authorization": "Bearer s3cret-token"}
     assert client.post("/reset", headers=good).json() == {"removed": n}
+    assert daemon.stats_dict()["events"]["reset_unauthorized"] == 2
     spec = client.get("/openapi.json").json()
     assert "401" in spec["paths"]["/reset"]["post"]["responses"]
 
