@@ -19,7 +19,13 @@ another:
   through): the camera re-anchors on them and goes on (``reanchored`` counts it).
 - Ready frames of different cameras leave oldest stamp first; a camera waiting for its pose
   does not hold back another one's ready frame.
-- A camera silent for ``camera_timeout_ns`` is forgotten; at most ``max_cameras`` are kept.
+- A camera silent for ``camera_timeout_ns`` is forgotten; at most ``max_cameras`` are kept. At
+  the limit, a new camera takes the slot of one that never completed a frame (no frame handed
+  out, and no info or no pose yet; those with neither first, then the least recently seen):
+  junk camera ids never lock a real camera out (``cameras_evicted``).
+- With ``max_future_ns``, images and poses stamped further ahead of ``now_ns`` are refused
+  (``future_stamp``, ``future_pose``): no estimate carries a stamp from the future, and a
+  camera's clock cannot be dragged ahead of the daemon's.
 - Sequence numbers (optional ``seq`` of images and poses) expose loss upstream of the daemon:
   per camera and kind, ``lost`` counts the numbers skipped, ``restarts`` a sequence that began
   again.
@@ -64,6 +70,7 @@ class SyncConfig:
     camera_timeout_ns: int = 60_000_000_000  # a camera silent this long is forgotten
     max_cameras: int = 16
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded images waiting, all cameras together
+    max_future_ns: int | None = None  # stamps further ahead of now_ns are refused (None: any)
 
     def __post_init__(self) -> None:
         for name in ("image_queue", "pose_buffer", "reanchor_frames", "max_cameras"):
@@ -72,6 +79,8 @@ class SyncConfig:
         for name in ("max_pose_gap_ns", "wait_ns", "camera_timeout_ns", "max_queued_bytes"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"SyncConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.max_future_ns is not None and self.max_future_ns <= 0:
+            raise ValueError(f"SyncConfig.max_future_ns must be > 0, got {self.max_future_ns}")
 
 
 def interpolate_pose(t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int) -> np.ndarray:
@@ -199,10 +208,32 @@ class FrameSynchronizer:
             if len(self._cams) >= self.config.max_cameras:
                 self._forget_silent(now_ns)
             if len(self._cams) >= self.config.max_cameras:
+                self._evict_unproven()
+            if len(self._cams) >= self.config.max_cameras:
                 return None
             cam = self._cams[cam_id] = _Camera(self.config, now_ns)
         cam.last_seen = max(cam.last_seen, now_ns)
         return cam
+
+    def _evict_unproven(self) -> None:
+        """Free the slot of a camera that never completed a frame: none handed out and no info
+        or no pose yet (those with neither first, then the least recently seen)."""
+        unproven = [
+            (int(cam.info is not None) + int(bool(cam.poses)), cam.last_seen, cid)
+            for cid, cam in self._cams.items()
+            if cam.counters.synced == 0 and (cam.info is None or not cam.poses)
+        ]
+        if not unproven:
+            return
+        *_, cid = min(unproven)
+        cam = self._cams.pop(cid)
+        if cam.images:
+            self.dropped["camera_evicted"] += len(cam.images)
+        self.events["cameras_evicted"] += 1
+
+    def _future(self, stamp: int, now_ns: int) -> bool:
+        limit = self.config.max_future_ns
+        return limit is not None and stamp - now_ns > limit
 
     def add_info(self, cam_id: str, msg: CameraInfoMsg, now_ns: int = 0) -> bool:
         """False when the camera is not taken (too many cameras)."""
@@ -216,7 +247,11 @@ class FrameSynchronizer:
             return True
 
     def add_pose(self, cam_id: str, msg: CameraPoseMsg, now_ns: int = 0) -> bool:
+        """False when the pose is not taken (too many cameras, stamped in the future)."""
         with self._lock:
+            if self._future(msg.stamp_ns, now_ns):
+                self.events["future_pose"] += 1
+                return False
             cam = self._cam(cam_id, now_ns)
             if cam is None:
                 self.events["too_many_cameras"] += 1
@@ -229,6 +264,9 @@ class FrameSynchronizer:
     def add_image(self, cam_id: str, msg: ImageMsg, now_ns: int = 0) -> bool:
         """Queue an image; False when it was dropped at once (counted by reason)."""
         with self._lock:
+            if self._future(msg.stamp_ns, now_ns):
+                self.dropped["future_stamp"] += 1
+                return False
             cam = self._cam(cam_id, now_ns)
             if cam is None:
                 self.dropped["too_many_cameras"] += 1

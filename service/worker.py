@@ -22,8 +22,9 @@ from service.sync import SyncedFrame
 
 @dataclass
 class Stats:
-    """Counters of the daemon. Per-key tables hold at most ``max_keys`` keys: the keys beyond
-    are counted together under ``other`` (junk keys must not grow memory)."""
+    """Counters of the daemon. Per-key tables hold at most ``max_keys`` keys, the most recently
+    seen: a key that leaves adds its count to ``other``, so a table's total stays exact (junk
+    keys must not grow memory, nor push out for good the keys of the cameras that work)."""
 
     received: dict[str, int] = field(default_factory=dict)  # per key
     decode_errors: dict[str, int] = field(default_factory=dict)  # per key
@@ -34,7 +35,16 @@ class Stats:
     max_keys: int = 64
 
     def count(self, table: dict[str, int], key: str) -> None:
-        if key not in table and len(table) >= self.max_keys:
+        if key in table:  # re-inserted: a dict keeps insertion order, so this is recency
+            table[key] = table.pop(key) + 1
+            return
+        while len(table) >= self.max_keys:
+            oldest = next((k for k in table if k != "other"), None)
+            if oldest is None:
+                break
+            n = table.pop(oldest)
+            table["other"] = table.pop("other", 0) + n
+        if len(table) >= self.max_keys:  # max_keys 1: only "other" is left
             key = "other"
         table[key] = table.get(key, 0) + 1
 

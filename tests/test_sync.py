@@ -148,10 +148,18 @@ def test_pose_buffer_forgets_the_least_recently_received():
     assert f is not None and f.T_world_cam[0, 3] == 2.0
 
 
+def _working_camera(s, cam, now=0):
+    """A camera that completed a frame: info, pose, image, handed out."""
+    _ready_camera(s, cam, now)
+    s.add_pose(cam, CameraPoseMsg(1, cam, "world", _pose(0.0)), now)
+    s.add_image(cam, ImageMsg(1, cam, IMG), now)
+    assert s.pop(now).camera_id == cam
+
+
 def test_silent_cameras_are_forgotten_and_cameras_are_bounded():
     s = _sync(max_cameras=2, camera_timeout_ns=10 * 10**9)
-    _ready_camera(s, "a", now=0)
-    _ready_camera(s, "b", now=0)
+    _working_camera(s, "a", now=0)
+    _working_camera(s, "b", now=0)
     assert not s.add_image("c", ImageMsg(1, "c", IMG), now_ns=1)
     assert s.dropped["too_many_cameras"] == 1
     assert s.add_image("c", ImageMsg(1, "c", IMG), now_ns=11 * 10**9)  # a and b went silent
@@ -177,3 +185,41 @@ def test_sequence_gaps_and_restarts_are_counted_per_camera():
     assert counters["lost"] == {"image": 2, "pose": 9}
     assert counters["restarts"] == {"image": 1}
     assert counters["images"] == 7 and counters["poses"] == 2 and counters["synced"] == 0
+
+
+def test_a_camera_that_never_completed_a_frame_yields_its_slot():
+    s = _sync(max_cameras=4)
+    _working_camera(s, "real")
+    _ready_camera(s, "starting", now=5)  # an info, no pose yet
+    s.add_image("junk0", ImageMsg(1, "junk0", IMG), 1)  # neither info nor pose
+    s.add_image("junk1", ImageMsg(1, "junk1", IMG), 2)
+    # full: a new camera takes the slot of the junk seen longest ago, then of the other
+    _ready_camera(s, "new", now=10)
+    assert s.cameras() == ["junk1", "new", "real", "starting"]
+    assert s.events["cameras_evicted"] == 1 and s.dropped["camera_evicted"] == 1
+    _ready_camera(s, "new2", now=11)
+    assert s.cameras() == ["new", "new2", "real", "starting"]
+    # then one with an info but no pose (the least recently seen); a working one never
+    assert s.add_image("late", ImageMsg(1, "late", IMG), 12)
+    assert "starting" not in s.cameras() and "real" in s.cameras()
+    s.add_pose("new", CameraPoseMsg(1, "new", "world", _pose(0.0)), 13)
+    s.add_pose("new2", CameraPoseMsg(1, "new2", "world", _pose(0.0)), 13)
+    s.add_pose("late", CameraPoseMsg(1, "late", "world", _pose(0.0)), 13)
+    _ready_camera(s, "late", now=13)
+    # every camera has an info and a pose now: nobody yields, the newcomer is refused
+    assert not s.add_image("more", ImageMsg(1, "more", IMG), 14)
+    assert s.dropped["too_many_cameras"] == 1 and len(s.cameras()) == 4
+
+
+def test_frames_and_poses_stamped_ahead_of_the_clock_are_refused():
+    s = _sync(max_future_ns=10 * 10**9)
+    _ready_camera(s, "a")
+    now = 1000 * 10**9
+    assert not s.add_pose("a", CameraPoseMsg(2**63 - 1000, "a", "world", _pose(0.0)), now)
+    assert not s.add_image("a", ImageMsg(2**63 - 1000, "a", IMG), now)
+    assert not s.add_image("a", ImageMsg(now + 10 * 10**9 + 1, "a", IMG), now)
+    assert s.dropped["future_stamp"] == 2 and s.events["future_pose"] == 1
+    stamp = now + 10 * 10**9  # at the margin: taken
+    s.add_pose("a", CameraPoseMsg(stamp, "a", "world", _pose(0.0)), now)
+    assert s.add_image("a", ImageMsg(stamp, "a", IMG), now)
+    assert s.pop(now).stamp_ns == stamp and s.pending() == 0
