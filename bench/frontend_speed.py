@@ -1,6 +1,11 @@
-"""Time of the learned front end per 1280x720 frame: pre-processing, network, voting.
+"""Time of the learned front end per frame, split by stage, against the parts in view.
 
-python -m bench.frontend_speed --dataset DIR [--model models/robi_like.onnx] [--frames 30]
+python -m bench.frontend_speed --dataset DIR [--dataset DIR ...] [--model models/robi_like.onnx]
+    [--frames 30] [--threads 2]
+
+For each frame: stage one (pre-processing and the box detector), the crops, stage two's network
+on all crops at once, and the voting (with masks and duplicate removal), as the front end runs
+them. Medians are printed per dataset and per number of detections (1-10, 11-20, 21+).
 """
 
 from __future__ import annotations
@@ -11,39 +16,86 @@ import time
 import numpy as np
 
 from estimator.dataset import load_dataset
-from estimator.frontend.network import NetworkFrontend, preprocess
+from estimator.frontend.network import NetworkFrontend
+
+
+def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:
+    """Seconds per stage of one frame, and the number of detections."""
+    from estimator.frontend.two_stage import (
+        crop_boxes,
+        decode_boxes,
+        suppress_duplicates,
+        vote_in_crop,
+    )
+
+    t = {}
+    t0 = time.perf_counter()
+    if frontend.crop_session is None:  # a one-stage model
+        dets = frontend.detect(image, seed)
+        t["total"] = time.perf_counter() - t0
+        return t, len(dets)
+    config = frontend.two_stage
+    boxes = decode_boxes(frontend.infer(image), frontend.card.input_scale, config)
+    t1 = time.perf_counter()
+    crops, transforms = crop_boxes(image, boxes, config)
+    t2 = time.perf_counter()
+    outs = frontend.crop_infer(crops) if boxes else []
+    t3 = time.perf_counter()
+    rng = np.random.default_rng([0, seed])
+    obj_ids = [k for k, _ in frontend.card.classes]
+    dets = []
+    for box, (a, b), out in zip(boxes, transforms, outs, strict=True):
+        d = vote_in_crop(
+            out, a, b, image.shape[:2], obj_ids[box.class_index], box.score,
+            frontend.voting, config, rng,
+        )
+        if d is not None:
+            dets.append(d)
+    dets = suppress_duplicates(dets, config.duplicate_factor)
+    t4 = time.perf_counter()
+    t.update(stage_one=t1 - t0, crops=t2 - t1, stage_two=t3 - t2, voting=t4 - t3, total=t4 - t0)
+    return t, len(dets)
 
 
 def main(argv: list[str] | None = None) -> int:
     from service.resources import DEFAULT_MODEL
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--dataset", required=True)
+    parser.add_argument("--dataset", action="append", required=True)
     parser.add_argument("--model", default=DEFAULT_MODEL)
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
-    ds = load_dataset(args.dataset)
-    frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads)
-    views = list(ds.views())[: args.frames]
-    images = [ds.scene(v.scene_id).load_rgb(v.im_id) for v in views]
-    frontend.detect(images[0])  # warm-up
-    total, net = [], []
-    for k, image in enumerate(images):
-        start = time.perf_counter()
-        frontend.session.run(None, {frontend.input_name: preprocess(image, frontend.card)})
-        net.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        frontend.detect(image, stamp_seed=k)
-        total.append(time.perf_counter() - start)
-    total_ms, net_ms = np.median(total) * 1000, np.median(net) * 1000
-    print(f"{len(images)} frames of {args.dataset}, {args.threads} onnxruntime threads")
-    print(f"pre-processing + network: median {net_ms:.1f} ms")
-    print(
-        f"pre-processing + network + voting (whole front end): median {total_ms:.1f} ms, "
-        f"p90 {np.percentile(total, 90) * 1000:.1f} ms"
-    )
+    buckets: dict[str, list[dict]] = {"1-10": [], "11-20": [], "21+": []}
+    for root in args.dataset:
+        ds = load_dataset(root)
+        frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads)
+        views = list(ds.views())[: args.frames]
+        images = [ds.scene(v.scene_id).load_rgb(v.im_id) for v in views]
+        frontend.detect(images[0])  # warm-up
+        rows = []
+        for k, image in enumerate(images):
+            t, n = time_frame(frontend, image, k)
+            t["n"] = n
+            rows.append(t)
+            key = "1-10" if n <= 10 else "11-20" if n <= 20 else "21+"
+            buckets[key].append(t)
+        print(_summary(f"{root} ({len(rows)} frames, {args.threads} threads)", rows))
+    for key, rows in buckets.items():
+        if rows:
+            print(_summary(f"frames with {key} detections", rows))
     return 0
+
+
+def _summary(title: str, rows: list[dict]) -> str:
+    keys = [k for k in ("stage_one", "crops", "stage_two", "voting") if k in rows[0]]
+    parts = ", ".join(f"{k} {np.median([r[k] for r in rows]) * 1000:.1f}" for k in keys)
+    total = [r["total"] for r in rows]
+    return (
+        f"{title}: {np.median([r['n'] for r in rows]):.0f} detections (median); "
+        f"whole front end median {np.median(total) * 1000:.1f} ms, p90 "
+        f"{np.percentile(total, 90) * 1000:.1f} ms" + (f" ({parts} ms)" if parts else "")
+    )
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Training the learned front end.
 
-- ``posefuse train``: the center-voting front end on synthetic renders of a catalog
+- ``posefuse train``: the two-stage front end on synthetic renders of a catalog, resumable
 """
 
 from __future__ import annotations
@@ -27,6 +27,11 @@ def _cmd_train(args: argparse.Namespace) -> int:
     load_catalog(args.catalog)  # a CatalogError before any work
     if not args.out.endswith(".onnx"):
         raise PosefuseError(f"--out: {args.out!r} must end in .onnx")
+    if args.resume and not Path(args.resume).is_file():
+        raise PosefuseError(f"--resume: {args.resume}: no such checkpoint")
+    for root in args.tune:
+        if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
+            raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
     config = TrainConfig(
         n_scenes=args.scenes,
         views_per_scene=args.views,
@@ -34,9 +39,18 @@ def _cmd_train(args: argparse.Namespace) -> int:
         minutes=args.minutes,
         max_iterations=args.iterations,
         batch=args.batch,
+        crop_batch=args.crop_batch,
         seed=args.seed,
         workers=args.workers,
         robi_fraction=args.robi_fraction,
+        data_dir=args.data_dir,
+        checkpoint=args.checkpoint,
+        checkpoint_minutes=args.checkpoint_minutes,
+        tune=tuple(args.tune),
+        bf16=not args.fp32,
+        resume=args.resume,
+        init=args.init,
+        run_steps=args.run_steps,
     )
     card = train(args.catalog, args.out, config)
     print(json.dumps(card, indent=2))
@@ -48,20 +62,73 @@ def register(subparsers) -> None:
     p = add_command(
         subparsers,
         "train",
-        "train the center-voting front end on synthetic renders",
-        "Needs the train extra (torch, CPU). The shipped model is models/robi_like.onnx; "
-        "replacing it takes an explicit --out models/robi_like.onnx.",
+        "train the two-stage front end (boxes, then a center per crop) on synthetic renders",
+        "Needs the train extra (torch, CPU). The shipped model is models/robi_like.onnx with "
+        "its crop model models/robi_like_crop.onnx and checkpoint models/robi_like.ckpt; "
+        "replacing it takes an explicit --out models/robi_like.onnx. A run ends at its step "
+        "count or its time budget; --resume CKPT goes on with the checkpoint's data, seeds "
+        "and schedule (see docs/training.md).",
     )
     p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
     p.add_argument(
         "--out", required=True, help="NAME.onnx to write (its model card NAME.json beside)"
     )
-    p.add_argument("--scenes", type=int, default=400, help="training scenes to render")
+    p.add_argument("--scenes", type=int, default=300, help="training scenes to render")
     p.add_argument("--views", type=int, default=4, help="views per training scene")
-    p.add_argument("--val-scenes", type=int, default=12, help="validation scenes to render")
-    p.add_argument("--minutes", type=float, default=40.0, help="training time budget")
-    p.add_argument("--iterations", type=int, default=100_000, help="at most this many steps")
-    p.add_argument("--batch", type=int, default=8, help="images per training step")
+    p.add_argument(
+        "--val-scenes", type=int, default=8, help="calibration scenes to render (held out)"
+    )
+    p.add_argument("--minutes", type=float, default=40.0, help="this run's wall-clock budget")
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=40_000,
+        help="the schedule's length in steps, over every resumed run (a resume keeps the "
+        "checkpoint's)",
+    )
+    p.add_argument("--batch", type=int, default=16, help="detector crops per step")
+    p.add_argument("--crop-batch", type=int, default=48, help="stage-two crops per step")
+    p.add_argument(
+        "--data-dir",
+        default=None,
+        help="where rendered training sets are kept and reused "
+        "(default: ~/.cache/posefuse/train)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        help="the resumable checkpoint to write (default: NAME.ckpt beside --out)",
+    )
+    p.add_argument(
+        "--checkpoint-minutes",
+        type=float,
+        default=30.0,
+        help="minutes between checkpoints (each also scores --tune: the learning curve)",
+    )
+    p.add_argument(
+        "--resume", default=None, help="a checkpoint to go on from (its data and schedule)"
+    )
+    p.add_argument(
+        "--run-steps",
+        type=int,
+        default=None,
+        help="stop this run after this many steps (the schedule is --iterations; resume later)",
+    )
+    p.add_argument(
+        "--init",
+        default=None,
+        help="fine-tune from this checkpoint (another catalog's: its class heatmaps are "
+        "replaced, the shared backbone and stage two kept)",
+    )
+    p.add_argument(
+        "--tune",
+        action="append",
+        default=[],
+        help="a BOP dataset scored at every checkpoint (repeat for several; tuning seeds only)",
+    )
+    p.add_argument(
+        "--fp32", action="store_true", help="train in float32 (default: bfloat16 autocast)"
+    )
     p.add_argument("--workers", type=int, default=2, help="rendering processes")
     p.add_argument(
         "--seed",

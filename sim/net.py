@@ -53,3 +53,82 @@ class CenterVotingNet(nn.Module):
         vec = out[:, self.n_classes + 1 :]
         vec = vec / torch.sqrt((vec * vec).sum(1, keepdim=True) + 1e-6)
         return torch.cat([logits, vec], 1)
+
+
+class Backbone(nn.Module):
+    """The shared encoder-decoder of both stages: input (B, 3, H, W), H and W multiples of 16;
+    output (B, 2 * width, H / 4, W / 4) features (an FPN-like top-down path from 1/16).
+
+    Both networks of the two-stage front end use it; only their heads are specific (the
+    detector's class heatmaps are the one class-specific part, so a new catalog replaces
+    that head and fine-tunes the rest)."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        w = width
+        self.enc1 = nn.Sequential(_block(3, w, 2), _block(w, w))  # 1/2
+        self.enc2 = nn.Sequential(_block(w, 2 * w, 2), _block(2 * w, 2 * w))  # 1/4
+        self.enc3 = nn.Sequential(_block(2 * w, 4 * w, 2), _block(4 * w, 4 * w))  # 1/8
+        self.enc4 = nn.Sequential(_block(4 * w, 6 * w, 2), _block(6 * w, 6 * w, dilation=2))
+        self.top = nn.Conv2d(6 * w, 2 * w, 1)
+        self.lat3 = nn.Conv2d(4 * w, 2 * w, 1)
+        self.lat2 = nn.Conv2d(2 * w, 2 * w, 1)
+        self.dec3 = _block(2 * w, 2 * w)
+        self.dec2 = _block(2 * w, 2 * w)
+        self.out_channels = 2 * w
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        e2 = self.enc2(self.enc1(x))
+        e3 = self.enc3(e2)
+        d = self.top(self.enc4(e3))
+        d = self.dec3(F.interpolate(d, scale_factor=2.0, mode="nearest") + self.lat3(e3))
+        return self.dec2(F.interpolate(d, scale_factor=2.0, mode="nearest") + self.lat2(e2))
+
+
+class BoxDetectorNet(nn.Module):
+    """Stage one, on the downscaled frame: CenterNet-style boxes and classes.
+
+    Output (B, C + 4, H / 4, W / 4): per class the probability that a part's visible box is
+    centred at that cell (sigmoid applied), then the box's log width and log height in input
+    pixels, then the sub-cell offset (x, y) of the box center in cells."""
+
+    def __init__(self, n_classes: int, width: int = 16):
+        super().__init__()
+        self.backbone = Backbone(width)
+        c = self.backbone.out_channels
+        self.neck = _block(c, c)
+        self.heatmap = nn.Conv2d(c, n_classes, 1)  # the class-specific head
+        self.box = nn.Conv2d(c, 4, 1)
+        nn.init.constant_(self.heatmap.bias, -2.19)  # prior 0.1, as CenterNet
+        self.n_classes = n_classes
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        f = self.neck(self.backbone(x))
+        return torch.cat([torch.sigmoid(self.heatmap(f)), self.box(f)], 1)
+
+    def forward_logits(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(heatmap logits (B, C, h, w), box (B, 4, h, w)) for training."""
+        f = self.neck(self.backbone(x))
+        return self.heatmap(f), self.box(f)
+
+
+class CropVotingNet(nn.Module):
+    """Stage two, PVNet-style, on one box cropped and resized to a fixed square: which pixels
+    belong to the part the crop is centred on, and a unit vector from each towards its
+    projected model origin. Class-agnostic (the class comes from stage one).
+
+    Input (B, 3, S, S); output (B, 3, S / 4, S / 4): the object-vs-not logit, then the unit
+    vector (x, y)."""
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.backbone = Backbone(width)
+        c = self.backbone.out_channels
+        self.neck = _block(c, c)
+        self.head = nn.Conv2d(c, 3, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.head(self.neck(self.backbone(x)))
+        vec = out[:, 1:]
+        vec = vec / torch.sqrt((vec * vec).sum(1, keepdim=True) + 1e-6)
+        return torch.cat([out[:, :1], vec], 1)

@@ -116,6 +116,8 @@ def frontend_overlay(
     """
     from estimator.frontend.network import output_to_image
 
+    if getattr(card, "kind", "center_voting") == "two_stage":
+        return _two_stage_overlay(image_rgb, detections, card, true_centers)
     image = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR).copy()
     H, W = image.shape[:2]
     n_classes = len(card.classes)
@@ -154,6 +156,33 @@ def frontend_overlay(
             cv2.drawMarker(
                 image, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 14, 2
             )
+    _draw_centers(image, detections)
+    return image
+
+
+def _two_stage_overlay(image_rgb, detections, card, true_centers) -> np.ndarray:
+    """Each detection's mask tinted by class, its box, its voted center with the 3-sigma
+    ellipse (white), and the true centers (green crosses)."""
+    image = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR).copy()
+    tint = image.copy()
+    order = {obj_id: k + 1 for k, (obj_id, _) in enumerate(card.classes)}
+    for d in detections:
+        if d.mask is not None:
+            tint[d.mask] = _colour(order.get(d.obj_id, 0) * 3)
+    image = cv2.addWeighted(image, 0.55, tint, 0.45, 0)
+    for d in detections:
+        x, y, w, h = np.round(d.bbox_xywh).astype(int)
+        cv2.rectangle(image, (x, y), (x + w, y + h), _colour(order.get(d.obj_id, 0) * 3), 1)
+    if true_centers is not None:
+        for u, v in true_centers:
+            cv2.drawMarker(
+                image, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 14, 2
+            )
+    _draw_centers(image, detections)
+    return image
+
+
+def _draw_centers(image: np.ndarray, detections) -> None:
     for d in detections:
         evals, evecs = np.linalg.eigh(d.center_cov)
         axes = tuple(int(max(1, round(3 * np.sqrt(e)))) for e in evals)
@@ -161,4 +190,3 @@ def frontend_overlay(
         c = tuple(np.round(d.center_uv).astype(int))
         cv2.ellipse(image, c, axes, angle, 0, 360, (255, 255, 255), 1, cv2.LINE_AA)
         cv2.circle(image, c, 3, (0, 0, 255), -1, cv2.LINE_AA)
-    return image

@@ -1,401 +1,483 @@
-"""Training the center-voting front end on synthetic renders (CPU, torch), export to ONNX.
+"""Training the two-stage front end on synthetic renders (CPU, torch), export to ONNX.
 
-``posefuse train --catalog DIR --out models/NAME.onnx`` renders bin scenes of the catalog with
-:mod:`sim` (scene seeds from ``TRAIN_SEED_BASE`` on, disjoint from the test sets' seeds; random
-lighting, bin textures, piles with occlusion, sensor noise; half of the scenes in the robi
-profile) at 1280x720 and resizes them to the network's input scale as the front end does;
-trains :class:`sim.net.CenterVotingNet` on crops (most of them centred on a part) with
-brightness, contrast and noise augmentation; calibrates the voting covariance on held-out
-renders made the same way; exports ONNX (opset 17) and writes the model card beside it.
+``posefuse train --catalog DIR --out models/NAME.onnx`` renders bin scenes of the catalog once
+(:mod:`sim.train_data`: scene seeds from ``TRAIN_SEED_BASE`` on, disjoint from every test and
+tuning seed; half of them robi piles, the rest mixed bins), then trains both stages together,
+one optimizer step of each per iteration (:mod:`sim.train_targets` draws the batches):
+
+- stage one, ``BoxDetectorNet``: focal loss on the class heatmaps, L1 on box size and offset;
+- stage two, ``CropVotingNet``: binary cross-entropy on the object label, smooth L1 on the
+  unit vectors of the object's pixels.
+
+Training is a resumable job. The schedule (warm-up, then a cosine over ``iterations`` steps)
+and the batches depend on the step number alone, and the checkpoint (``--checkpoint``,
+written every ``checkpoint_minutes`` and at the end) keeps the weights, the optimizer state
+(bfloat16), the step, the cumulative CPU seconds and the learning curve. ``--resume CKPT``
+goes on from there; a run ends at its step count or its time budget, whichever comes first.
+At each checkpoint both stages are exported and, given tuning datasets, scored there with the
+front end's own code (:class:`estimator.frontend.network.NetworkFrontend`): the learning curve.
+At the end the voting covariance is calibrated on held-out renders (mean NEES 2).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
-from dataclasses import dataclass
-from multiprocessing import get_context
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
-from estimator.camera import Camera
-from estimator.frontend.network import MEAN, STD, ModelCard, catalog_hash, output_to_image
-from estimator.frontend.voting import VotingConfig, vote_instances
-from estimator.objects import Catalog, load_catalog
-from estimator.render import CHROME, METAL, Renderer
-from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
-from sim.sensor import SensorModel, apply_rgb
-from sim.synth import BIN_ID, scene_seed
+from estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
+from estimator.objects import load_catalog
+from sim.scenes import REALSENSE_1280x720
+from sim.train_data import RenderSpec, TrainingSet, profile_of, render_scene, render_training_set
+from sim.train_targets import (
+    CROP_STRIDE,
+    DET_STRIDE,
+    MIN_TARGET_VISIB,
+    BatchConfig,
+    crop_batch,
+    detector_batch,
+)
 
 TRAIN_SEED_BASE = 7_000_000  # scene seeds of training data; test sets use small seeds
+VAL_SEED_BASE = TRAIN_SEED_BASE + 1
 INPUT_SCALE = 0.5
-OUTPUT_STRIDE = 2
+CHECKPOINT_VERSION = 1
+
+__all__ = ["TRAIN_SEED_BASE", "TrainConfig", "profile_of", "render_scene", "train"]
 
 
 @dataclass(frozen=True)
 class TrainConfig:
-    n_scenes: int = 400
+    n_scenes: int = 300
     views_per_scene: int = 4
-    val_scenes: int = 12
-    minutes: float = 40.0
-    max_iterations: int = 100_000
-    batch: int = 8
-    crop: tuple[int, int] = (256, 320)  # input pixels (height, width)
+    val_scenes: int = 8
+    minutes: float = 40.0  # this run's wall-clock budget
+    max_iterations: int = 40_000  # the schedule's length, over all runs of a checkpoint
+    batch: int = 16  # detector crops per step
+    crop_batch: int = 48  # stage-two crops per step
+    crop_size: int = 96
     lr: float = 2e-3
+    warmup: int = 500
     width: int = 16
     seed: int = 0
     workers: int = 2
-    robi_fraction: float = 0.5  # of the scenes rendered with the robi profile, the rest mixed
+    robi_fraction: float = 0.5
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
+    data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
+    checkpoint: str | None = None  # where the resumable checkpoint goes
+    checkpoint_minutes: float = 30.0
+    tune: tuple[str, ...] = ()  # BOP datasets scored at each checkpoint (the learning curve)
+    bf16: bool = True  # bfloat16 autocast with channels_last (measured faster on this CPU)
+    threads: int = 2
+    resume: str | None = None
+    init: str | None = None  # a checkpoint of another catalog to fine-tune from
+    run_steps: int | None = None  # this run stops after this many steps (the schedule goes on)
+    extra: dict = field(default_factory=dict)
+
+    def schedule(self, step: int) -> float:
+        """Learning rate of ``step``: linear warm-up, then a cosine to 2% of ``lr``."""
+        if step < self.warmup:
+            return self.lr * (step + 1) / self.warmup
+        frac = min((step - self.warmup) / max(self.max_iterations - self.warmup, 1), 1.0)
+        return self.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * frac)))
 
 
-def _class_index(catalog: Catalog) -> dict[int, int]:
-    return {obj_id: k + 1 for k, obj_id in enumerate(sorted(catalog))}
+# what a resumed run must share with the run that wrote the checkpoint
+_STREAM_FIELDS = (
+    "n_scenes", "views_per_scene", "max_iterations", "batch", "crop_batch", "crop_size",
+    "lr", "warmup", "width", "seed", "robi_fraction",
+)
 
 
-def profile_of(scene_index: int, robi_fraction: float) -> str:
-    """Which profile a training scene uses: ``robi_fraction`` of them, interleaved, are robi."""
-    robi = int((scene_index + 1) * robi_fraction) > int(scene_index * robi_fraction)
-    return "robi" if robi else "mixed"
+def _default_data_dir() -> Path:
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "posefuse" / "train"
 
 
-_CATALOGS: dict[str, Catalog] = {}
+class _Nets:
+    """Both stages, their optimizer, and the losses of one step."""
 
+    def __init__(self, n_classes: int, config: TrainConfig):
+        import torch
 
-def _cached_catalog(catalog_dir: str) -> Catalog:
-    """One load per rendering process (a worker renders many scenes of the same catalog)."""
-    if catalog_dir not in _CATALOGS:
-        _CATALOGS[catalog_dir] = load_catalog(catalog_dir)
-    return _CATALOGS[catalog_dir]
+        from sim.net import BoxDetectorNet, CropVotingNet
 
+        torch.manual_seed(config.seed)
+        self.torch = torch
+        self.config = config
+        self.n_classes = n_classes
+        self.det = BoxDetectorNet(n_classes, config.width)
+        self.crop = CropVotingNet(config.width)
+        if config.bf16:
+            self.det = self.det.to(memory_format=torch.channels_last)
+            self.crop = self.crop.to(memory_format=torch.channels_last)
+        params = list(self.det.parameters()) + list(self.crop.parameters())
+        self.opt = torch.optim.AdamW(params, lr=config.lr, weight_decay=1e-4)
+        self.mean = torch.tensor(MEAN).view(1, 3, 1, 1)
+        self.std = torch.tensor(STD).view(1, 3, 1, 1)
 
-def render_views(args: tuple) -> list[tuple]:
-    """One scene's views as (image (Hp, W, 3) uint8, labels (h, w) uint8, vectors (2, h, w)
-    float16, centers (K, 3) class and output-grid x, y), at the network's input scale; the
-    picklable unit of parallel rendering.
-
-    Views are made exactly as test images and the service's frames are: rendered at 1280x720
-    with the sensor model applied there, then resized by ``INPUT_SCALE`` with the same
-    ``cv2.resize`` as the front end's pre-processing (the instance map by nearest neighbour).
-    """
-    catalog_dir, scene_index, views, seed_base, profile = args
-    catalog = _cached_catalog(catalog_dir)
-    classes = _class_index(catalog)
-    seed = scene_seed(seed_base, scene_index)
-    full = REALSENSE_1280x720
-    camera = full.scaled(INPUT_SCALE)
-    spec = dataclasses.replace(PROFILES[profile], n_views=views)
-    scene = make_scene(catalog, spec, seed, full)
-    materials = [CHROME if "screw" in catalog[i.obj_id].name else METAL for i in scene.instances]
-    meshes = [catalog[i.obj_id].mesh for i in scene.instances] + [scene.bin_mesh]
-    poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
-    ids = list(range(len(scene.instances))) + [BIN_ID]
-    renderer = Renderer(meshes, poses, ids, materials + [scene.bin_material])
-    rng = np.random.default_rng(seed + 1)
-    size = (camera.width, camera.height)
-    out = []
-    for T_world_cam in scene.T_world_cams:
-        res = renderer.render(full, T_world_cam, scene.lighting)
-        image = cv2.resize(
-            apply_rgb(res.image, SensorModel(), rng), size, interpolation=cv2.INTER_AREA
+    def _input(self, images: np.ndarray, gen) -> object:
+        torch = self.torch
+        x = torch.from_numpy(images).permute(0, 3, 1, 2).float().div_(255.0)
+        x = (x - self.mean) / self.std
+        b = x.shape[0]
+        gain = torch.empty(b, 1, 1, 1).uniform_(0.7, 1.3, generator=gen)
+        bias = torch.empty(b, 1, 1, 1).uniform_(-0.3, 0.3, generator=gen)
+        tint = torch.empty(b, 3, 1, 1).uniform_(-0.08, 0.08, generator=gen)
+        noise = torch.randn(x.shape, generator=gen) * torch.empty(b, 1, 1, 1).uniform_(
+            0.0, 0.08, generator=gen
         )
-        instance = cv2.resize(res.instance.astype(np.int32), size, interpolation=cv2.INTER_NEAREST)
-        out.append(make_targets(image, instance, scene, T_world_cam, camera, classes))
-    return out
+        x = x * gain + bias + tint + noise
+        if self.config.bf16:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return x
 
-
-def make_targets(image, instance, scene, T_world_cam, camera: Camera, classes):
-    """Pad to a multiple of 16; labels and unit vectors on the output grid."""
-    H, W = instance.shape
-    Hp = H + (-H % 16)
-    img = np.concatenate([image, np.repeat(image[-1:], Hp - H, axis=0)], 0)
-    inst = np.concatenate([instance, np.full((Hp - H, W), -1, instance.dtype)], 0)
-    h, w = Hp // OUTPUT_STRIDE, W // OUTPUT_STRIDE
-    grid = inst[::OUTPUT_STRIDE, ::OUTPUT_STRIDE]  # (h, w)
-    labels = np.zeros((h, w), np.uint8)
-    vectors = np.zeros((2, h, w), np.float16)
-    T_cam_world = np.linalg.inv(T_world_cam)
-    ys, xs = np.mgrid[0:h, 0:w]
-    px = xs * OUTPUT_STRIDE + 0.5 * (OUTPUT_STRIDE - 1)  # output pixel centres, input coords
-    py = ys * OUTPUT_STRIDE + 0.5 * (OUTPUT_STRIDE - 1)
-    centers = []  # (class, x, y) on the output grid, per visible instance
-    for k, inst_k in enumerate(scene.instances):
-        sel = grid == k
-        if not sel.any():
-            continue
-        t_cam = T_cam_world[:3, :3] @ inst_k.T_world_obj[:3, 3] + T_cam_world[:3, 3]
-        u, v = camera.project(t_cam)
-        dx, dy = u - px[sel], v - py[sel]
-        n = np.maximum(np.hypot(dx, dy), 1e-6)
-        labels[sel] = classes[inst_k.obj_id]
-        vectors[0][sel] = dx / n
-        vectors[1][sel] = dy / n
-        s = OUTPUT_STRIDE
-        centers.append((classes[inst_k.obj_id], (u - 0.5 * (s - 1)) / s, (v - 0.5 * (s - 1)) / s))
-    return img, labels, vectors, np.array(centers).reshape(-1, 3)
-
-
-def render_dataset(catalog_dir, n_scenes, views, seed_base, workers, desc, robi_fraction=0.0):
-    jobs = [
-        (str(catalog_dir), k, views, seed_base, profile_of(k, robi_fraction))
-        for k in range(n_scenes)
-    ]
-    items = []
-    with tqdm(total=n_scenes, desc=desc, unit="scene") as bar:
-        if workers > 1:
-            with get_context("spawn").Pool(workers) as pool:
-                for views_out in pool.imap(render_views, jobs):
-                    items.extend(views_out)
-                    bar.update(1)
-        else:
-            for job in jobs:
-                items.extend(render_views(job))
-                bar.update(1)
-    images = np.stack([it[0] for it in items])
-    labels = np.stack([it[1] for it in items])
-    vectors = np.stack([it[2] for it in items])
-    return images, labels, vectors, [it[3] for it in items]
-
-
-def crop_origins(
-    image_hw: tuple[int, int],
-    crop_hw: tuple[int, int],
-    centers: list[np.ndarray],
-    rng: np.random.Generator,
-    on_part: float = 0.8,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Top-left corners (y0, x0), multiples of 16, of one crop per image: with probability
-    ``on_part`` the crop holds a random visible instance's center (parts fill a small share of
-    a bin view; crops of empty bin floor teach little), otherwise anywhere.
-
-    Args:
-        centers: per image (K, 3) class and output-grid x, y of its visible instances.
-    Returns:
-        y0, x0: (B,) each.
-    """
-    H, W = image_hw
-    ch, cw = crop_hw
-    ny, nx = (H - ch) // 16 + 1, (W - cw) // 16 + 1
-    y0 = rng.integers(0, ny, size=len(centers)) * 16
-    x0 = rng.integers(0, nx, size=len(centers)) * 16
-    for b, c in enumerate(centers):
-        if len(c) == 0 or rng.random() >= on_part:
-            continue
-        _, cx, cy = c[rng.integers(len(c))]
-        px, py = cx * OUTPUT_STRIDE, cy * OUTPUT_STRIDE  # input pixels
-        # corners whose crop keeps the center at least 32 px from its border
-        lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
-        lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
-        lo_x, hi_x = max(lo_x, 0), min(hi_x, nx - 1)
-        lo_y, hi_y = max(lo_y, 0), min(hi_y, ny - 1)
-        if lo_x <= hi_x:
-            x0[b] = rng.integers(lo_x, hi_x + 1) * 16
-        if lo_y <= hi_y:
-            y0[b] = rng.integers(lo_y, hi_y + 1) * 16
-    return y0, x0
-
-
-def _normalise(images_uint8):
-    import torch
-
-    x = torch.from_numpy(images_uint8).float().div_(255.0)
-    x = (x - torch.tensor(MEAN)) / torch.tensor(STD)
-    return x.permute(0, 3, 1, 2).contiguous()
-
-
-def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) -> dict:
-    """Render, train, calibrate, export; returns the model card's dict."""
-    import torch
-    from torch.nn import functional as F
-
-    from sim.net import CenterVotingNet
-
-    torch.manual_seed(config.seed)
-    torch.set_num_threads(2)
-    catalog = load_catalog(catalog_dir)
-    n_classes = len(catalog)
-    start = time.time()
-    images, labels, vectors, centers = render_dataset(
-        catalog_dir,
-        config.n_scenes,
-        config.views_per_scene,
-        TRAIN_SEED_BASE,
-        config.workers,
-        "render train",
-        config.robi_fraction,
-    )
-    val = render_dataset(
-        catalog_dir,
-        config.val_scenes,
-        config.views_per_scene,
-        TRAIN_SEED_BASE + 1,
-        config.workers,
-        "render val",
-        config.robi_fraction,
-    )
-    render_minutes = (time.time() - start) / 60
-    model = CenterVotingNet(n_classes, config.width)
-    opt = torch.optim.AdamW(model.parameters(), lr=config.lr, weight_decay=1e-4)
-    rng = np.random.default_rng(config.seed)
-    fg = (labels > 0).mean()
-    class_w = torch.ones(n_classes + 1)
-    class_w[0] = float(np.clip(fg / (1 - fg) * 4, 0.05, 1.0))  # background is most pixels
-    ch, cw = config.crop
-    loop_start = time.time()
-    deadline = loop_start + config.minutes * 60
-    if config.deadline is not None:
-        deadline = min(deadline, config.deadline)
-    it = 0
-    # the budget is time: the bar counts seconds, so its ETA is the end of training
-    bar = tqdm(total=max(int(deadline - loop_start), 1), desc="train", unit="s")
-    losses = []
-    model.train()
-    while it < config.max_iterations and time.time() < deadline:
-        frac = min((time.time() - loop_start) / max(deadline - loop_start, 1e-9), 1)
-        for g in opt.param_groups:
-            g["lr"] = config.lr * 0.5 * (1 + np.cos(np.pi * frac))
-        idx = rng.integers(len(images), size=config.batch)
-        y0, x0 = crop_origins(images.shape[1:3], config.crop, [centers[i] for i in idx], rng)
-        xb = np.stack(
-            [images[i, a : a + ch, b : b + cw] for i, a, b in zip(idx, y0, x0, strict=True)]
-        )
-        s = OUTPUT_STRIDE
-        lb = np.stack(
-            [
-                labels[i, a // s : (a + ch) // s, b // s : (b + cw) // s]
-                for i, a, b in zip(idx, y0, x0, strict=True)
-            ]
-        )
-        vb = np.stack(
-            [
-                vectors[i, :, a // s : (a + ch) // s, b // s : (b + cw) // s]
-                for i, a, b in zip(idx, y0, x0, strict=True)
-            ]
-        )
-        x = _normalise(xb)
-        gain = torch.from_numpy(rng.uniform(0.7, 1.3, (config.batch, 1, 1, 1))).float()
-        bias = torch.from_numpy(rng.uniform(-0.3, 0.3, (config.batch, 1, 1, 1))).float()
-        x = x * gain + bias + 0.05 * torch.randn_like(x)
-        out = model(x)
-        target = torch.from_numpy(lb.astype(np.int64))
-        loss_cls = F.cross_entropy(out[:, : n_classes + 1], target, weight=class_w)
-        mask = (target > 0).unsqueeze(1).float()
-        vt = torch.from_numpy(vb.astype(np.float32))
-        loss_vec = (F.smooth_l1_loss(out[:, n_classes + 1 :], vt, reduction="none") * mask).sum()
-        loss_vec = loss_vec / mask.sum().clamp(min=1)
-        loss = loss_cls + 2.0 * loss_vec
-        opt.zero_grad()
+    def step(self, det_batch, crop_batch_, lr: float, gen) -> dict[str, float]:
+        torch = self.torch
+        F = torch.nn.functional
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        images, heat, weight, box, box_mask = det_batch
+        crops, label, vec = crop_batch_
+        heat, weight = torch.from_numpy(heat), torch.from_numpy(weight).unsqueeze(1)
+        box, box_mask = torch.from_numpy(box), torch.from_numpy(box_mask).unsqueeze(1)
+        label, vec = torch.from_numpy(label).unsqueeze(1), torch.from_numpy(vec)
+        x_det, x_crop = self._input(images, gen), self._input(crops, gen)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.bf16):
+            logits, box_out = self.det.forward_logits(x_det)
+            crop_out = self.crop(x_crop)
+        logits, box_out, crop_out = logits.float(), box_out.float(), crop_out.float()
+        # CenterNet's focal loss on the heatmaps
+        p = torch.sigmoid(logits).clamp(1e-4, 1 - 1e-4)
+        pos = (heat >= 1.0).float()
+        n_pos = pos.sum().clamp(min=1.0)
+        pos_loss = -(torch.log(p) * (1 - p) ** 2 * pos).sum()
+        neg_loss = -(torch.log(1 - p) * p**2 * (1 - heat) ** 4 * (1 - pos) * weight).sum()
+        loss_heat = (pos_loss + neg_loss) / n_pos
+        loss_box = (F.l1_loss(box_out, box, reduction="none") * box_mask).sum() / n_pos
+        # stage two: object label and the unit vectors on its pixels
+        loss_label = F.binary_cross_entropy_with_logits(crop_out[:, :1], label)
+        loss_vec = (F.smooth_l1_loss(crop_out[:, 1:], vec, reduction="none") * label).sum()
+        loss_vec = loss_vec / label.sum().clamp(min=1.0)
+        loss = loss_heat + loss_box + loss_label + 2.0 * loss_vec
+        self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-        it += 1
-        if it % 20 == 0:
-            bar.set_postfix(it=it, loss=f"{np.mean(losses[-20:]):.3f}", refresh=False)
-            bar.update(
-                min(int(time.time() - loop_start), bar.total) - bar.n
-            )  # respects mininterval
-    bar.close()
-    train_minutes = (time.time() - start) / 60 - render_minutes
-    model.eval()
-    model_path = Path(model_path)
-    model_path.parent.mkdir(parents=True, exist_ok=True)
-    dummy = torch.zeros(1, 3, 368, 640)
-    torch.onnx.export(
-        model,
-        (dummy,),
-        str(model_path),
-        dynamo=False,
-        opset_version=17,
-        input_names=["image"],
-        output_names=["out"],
-        dynamic_axes={"image": {2: "h", 3: "w"}, "out": {2: "h2", 3: "w2"}},
-    )
-    card = ModelCard(
+        self.opt.step()
+        return {
+            "heat": float(loss_heat.detach()),
+            "box": float(loss_box.detach()),
+            "label": float(loss_label.detach()),
+            "vec": float(loss_vec.detach()),
+        }
+
+    def state(self) -> dict:
+        """Weights and the optimizer's moments in float32: about 6 MB for both stages, small
+        enough to keep exact (a resume then continues bit for bit)."""
+        return {
+            "det": self.det.state_dict(),
+            "crop": self.crop.state_dict(),
+            "opt": self.opt.state_dict(),
+        }
+
+    def load(self, state: dict) -> None:
+        self.det.load_state_dict(state["det"])
+        self.crop.load_state_dict(state["crop"])
+        self.opt.load_state_dict(state["opt"])
+
+    def init_from(self, state: dict) -> list[str]:
+        """Start from another catalog's weights: everything but the class heatmaps (the one
+        class-specific head) when the class count differs; returns the layers left fresh."""
+        det = self.det.state_dict()
+        fresh = []
+        for k, v in state["det"].items():
+            if k in det and det[k].shape == v.shape:
+                det[k] = v
+            else:
+                fresh.append(k)
+        self.det.load_state_dict(det)
+        self.crop.load_state_dict(state["crop"])
+        return fresh
+
+    def export(self, model_path: Path, card: ModelCard) -> None:
+        """Both stages as ONNX (opset 17) and the card beside the detector."""
+        torch = self.torch
+        crop_path = model_path.with_name(model_path.stem + "_crop.onnx")
+        det = _float_copy(self.det)
+        crop = _float_copy(self.crop)
+        w, h = card.image_size
+        sw, sh = round(w * card.input_scale), round(h * card.input_scale)
+        torch.onnx.export(
+            det,
+            (torch.zeros(1, 3, sh + (-sh % 16), sw + (-sw % 16)),),
+            str(model_path),
+            dynamo=False,
+            opset_version=17,
+            input_names=["image"],
+            output_names=["out"],
+            dynamic_axes={"image": {2: "h", 3: "w"}, "out": {2: "h4", 3: "w4"}},
+        )
+        S = self.config.crop_size
+        torch.onnx.export(
+            crop,
+            (torch.zeros(2, 3, S, S),),
+            str(crop_path),
+            dynamo=False,
+            opset_version=17,
+            input_names=["crops"],
+            output_names=["out"],
+            dynamic_axes={"crops": {0: "n"}, "out": {0: "n"}},
+        )
+        model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
+
+
+def _float_copy(model):
+    import copy
+
+    import torch
+
+    m = copy.deepcopy(model).to(memory_format=torch.contiguous_format).float().eval()
+    return m
+
+
+def _card(catalog, config: TrainConfig, model_path: Path, cov_scale: float, extra: dict) -> ModelCard:
+    return ModelCard(
         classes=tuple((k, m.name) for k, m in sorted(catalog.items())),
         catalog_hash=catalog_hash(catalog),
         image_size=(REALSENSE_1280x720.width, REALSENSE_1280x720.height),
         input_scale=INPUT_SCALE,
-        output_stride=OUTPUT_STRIDE,
-    )
-    cov_scale, val_metrics = calibrate(model, val, card, n_classes)
-    card = ModelCard(
-        card.classes,
-        card.catalog_hash,
-        card.image_size,
-        card.input_scale,
-        card.output_stride,
+        output_stride=DET_STRIDE,
         cov_scale=cov_scale,
-        extra={
-            "architecture": f"CenterVotingNet(width={config.width}), "
-            f"{sum(p.numel() for p in model.parameters())} parameters",
-            "training": {
-                "data": f"{config.n_scenes} scenes x {config.views_per_scene} views "
-                f"({config.robi_fraction:.0%} robi profile, the rest mixed), rendered at "
-                f"1280x720 and resized to {int(1280 * INPUT_SCALE)}x{int(720 * INPUT_SCALE)} "
-                f"as the front end does, scene seeds scene_seed({TRAIN_SEED_BASE}, "
-                f"0..{config.n_scenes - 1}); validation scene_seed({TRAIN_SEED_BASE + 1}, "
-                f"0..{config.val_scenes - 1})",
-                "iterations": it,
-                "batch": config.batch,
-                "crop": list(config.crop),
-                "crops_on_a_part": 0.8,
-                "final_loss": float(np.mean(losses[-100:])) if losses else None,
-                "render_minutes": round(render_minutes, 1),
-                "train_minutes": round(train_minutes, 1),
-                "seed": config.seed,
-            },
-            "validation": val_metrics,
+        kind="two_stage",
+        two_stage={
+            "crop_model": model_path.stem + "_crop.onnx",
+            "det_stride": DET_STRIDE,
+            "crop_size": config.crop_size,
+            "crop_stride": CROP_STRIDE,
+            "box_scale": BatchConfig().box_scale,
         },
+        extra=extra,
     )
-    model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
-    return card.to_json()
 
 
-def calibrate(model, val, card: ModelCard, n_classes: int) -> tuple[float, dict]:
-    """Run the voting on held-out renders: the covariance scale that makes the mean NEES of the
-    2D center equal 2 (its expectation), and validation metrics."""
-    import torch
+def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> dict:
+    """Recall, precision, median center error and mean NEES of the exported model on each
+    tuning dataset (all views), with the front end's own code."""
+    from estimator.dataset import load_dataset
+    from estimator.frontend.metrics import score_frontend
 
-    images, _, _, centers = val
+    out = {}
+    for root in datasets:
+        ds = load_dataset(root)
+        fe = NetworkFrontend(model_path, ds.catalog, seed=seed)
+
+        def detect(view, fe=fe, ds=ds):
+            image = ds.scene(view.scene_id).load_rgb(view.im_id)
+            return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+
+        s = score_frontend(ds, detect, list(ds.views()))
+        out[Path(root).name] = {
+            "recall": s.recall,
+            "precision": s.precision,
+            "median_center_error_px": s.median_center_error_px,
+            "mean_nees": s.mean_nees,
+            "instances": s.n_instances,
+        }
+    return out
+
+
+def calibrate(model_path: Path, val: TrainingSet, seed: int = 0) -> tuple[float, dict]:
+    """The covariance scale that makes the mean NEES of matched centers 2 on held-out renders
+    (the model's card read with scale 1), and validation figures."""
+    from scipy.optimize import linear_sum_assignment
+
+    from estimator.objects import load_catalog as _load
+
+    catalog = _load(val.meta["catalog"])
+    card_path = model_path.with_suffix(".json")
+    data = json.loads(card_path.read_text())
+    data["voting_cov_scale"] = 1.0
+    card_path.write_text(json.dumps(data, indent=2) + "\n")
+    fe = NetworkFrontend(model_path, catalog, seed=seed)
+    obj_of_class = {k + 1: obj_id for k, obj_id in enumerate(sorted(catalog))}
     nees, errors = [], []
     n_true = n_found = 0
-    with torch.no_grad():
-        for k in range(len(images)):
-            out = model(_normalise(images[k : k + 1]))[0].numpy()
-            pred = np.argmax(out[: n_classes + 1], 0)
-            h, w = pred.shape
-            ys, xs = np.mgrid[0:h, 0:w]
-            n_true += len(centers[k])
-            for c in range(1, n_classes + 1):
-                sel = pred == c
-                truth = centers[k][centers[k][:, 0] == c, 1:]
-                if sel.sum() < 25 or len(truth) == 0:
-                    continue
-                pix = np.stack([xs[sel], ys[sel]], 1).astype(float)
-                vec = out[n_classes + 1 :, sel].T.astype(float)
-                for inst in vote_instances(pix, vec, VotingConfig(), k):
-                    d = np.linalg.norm(truth - inst.center, axis=1)
-                    j = int(np.argmin(d))
-                    if d[j] > 5.0:  # output pixels
-                        continue
+    rows_of = val.view_instances()
+    for i in range(val.n_views):
+        dets = fe.detect(np.asarray(val.full_rgb[i]), stamp_seed=i)
+        rows = rows_of[i][rows_of[i][:, 9] > 0.75]
+        n_true += len(rows)
+        cost = np.full((len(dets), len(rows)), 1e9)
+        for a, d in enumerate(dets):
+            for b, r in enumerate(rows):
+                if obj_of_class[int(r[2])] == d.obj_id:
+                    dist = float(np.linalg.norm(d.center_uv - r[3:5]))
+                    if dist <= 15.0:
+                        cost[a, b] = dist
+        if cost.size:
+            for a, b in zip(*linear_sum_assignment(cost), strict=True):
+                if cost[a, b] < 1e9:
                     n_found += 1
-                    e = inst.center - truth[j]
-                    errors.append(
-                        np.linalg.norm(
-                            output_to_image(inst.center, card) - output_to_image(truth[j], card)
-                        )
-                    )
-                    nees.append(e @ np.linalg.solve(inst.cov, e))
-    nees = np.array(nees)
-    scale = float(np.mean(nees) / 2.0) if len(nees) else 1.0
+                    e = dets[a].center_uv - rows[b][3:5]
+                    errors.append(float(np.linalg.norm(e)))
+                    nees.append(float(e @ np.linalg.solve(dets[a].center_cov, e)))
+    scale = float(np.mean(nees) / 2.0) if nees else 1.0
     return scale, {
-        "views": int(len(images)),
+        "views": int(val.n_views),
         "visible_instances": int(n_true),
-        "found_within_5_output_px": int(n_found),
-        "median_center_error_px_full_res": float(np.median(errors)) if errors else None,
-        "mean_nees_before_calibration": float(np.mean(nees)) if len(nees) else None,
+        "found": int(n_found),
+        "median_center_error_px": float(np.median(errors)) if errors else None,
+        "mean_nees_before_calibration": float(np.mean(nees)) if nees else None,
     }
+
+
+def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) -> dict:
+    """Render (or reuse), train (or resume), export; returns the model card's dict."""
+    import torch
+
+    torch.set_num_threads(config.threads)
+    catalog = load_catalog(catalog_dir)
+    model_path = Path(model_path)
+    model_path.parent.mkdir(parents=True, exist_ok=True)
+    ckpt_path = Path(config.checkpoint) if config.checkpoint else model_path.with_suffix(".ckpt")
+    state = None
+    if config.resume:
+        state = torch.load(config.resume, map_location="cpu", weights_only=False)
+        if state.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{config.resume}: checkpoint version {state.get('version')}")
+        if state["catalog_hash"] != catalog_hash(catalog):
+            raise ValueError(f"{config.resume}: trained for another catalog")
+        stored = state["config"]
+        config = dataclasses.replace(
+            config, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in stored.items() if k in _STREAM_FIELDS}
+        )
+    data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
+    t_render = time.time()
+    spec = RenderSpec(config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction)
+    ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
+    val_spec = RenderSpec(config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction)
+    val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
+    render_minutes = (time.time() - t_render) / 60
+    nets = _Nets(len(catalog), config)
+    step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
+    if config.init and state is None:
+        base = torch.load(config.init, map_location="cpu", weights_only=False)
+        fresh = nets.init_from(base["nets"])
+        tqdm.write(f"fine-tuning from {config.init}; new layers: {', '.join(fresh) or 'none'}")
+    if state is not None:
+        nets.load(state["nets"])
+        step, cpu_seconds, wall_seconds = state["step"], state["cpu_seconds"], state["wall_seconds"]
+        curve = state["curve"]
+    view_rows = ts.view_instances()
+    candidates = np.flatnonzero(ts.instances[:, 9] >= MIN_TARGET_VISIB)
+    batch_config = BatchConfig(
+        det_batch=config.batch, crop_batch=config.crop_batch, crop_size=config.crop_size
+    )
+    start = time.time()
+    deadline = start + config.minutes * 60
+    if config.deadline is not None:
+        deadline = min(deadline, config.deadline)
+    last_ckpt = time.time()
+    cpu_mark, wall_mark = time.process_time(), time.time()
+    losses: list[dict] = []
+
+    def account():
+        nonlocal cpu_seconds, wall_seconds, cpu_mark, wall_mark
+        now_cpu, now_wall = time.process_time(), time.time()
+        cpu_seconds += now_cpu - cpu_mark
+        wall_seconds += now_wall - wall_mark
+        cpu_mark, wall_mark = now_cpu, now_wall
+
+    def checkpoint(final: bool):
+        nonlocal cpu_mark, wall_mark
+        account()
+        point = {
+            "step": step,
+            "cpu_hours": cpu_seconds / 3600,
+            "wall_hours": wall_seconds / 3600,
+            "loss": {k: float(np.mean([d[k] for d in losses[-200:]])) for k in losses[0]}
+            if losses
+            else None,
+        }
+        nets.export(model_path, _card(catalog, config, model_path, 1.0, {}))
+        if config.tune:
+            point["tuning"] = score_tuning(model_path, config.tune, config.seed)
+        curve.append(point)
+        torch.save(
+            {
+                "version": CHECKPOINT_VERSION,
+                "catalog_hash": catalog_hash(catalog),
+                "config": {k: getattr(config, k) for k in _STREAM_FIELDS},
+                "step": step,
+                "cpu_seconds": cpu_seconds,
+                "wall_seconds": wall_seconds,
+                "curve": curve,
+                "nets": nets.state(),
+            },
+            ckpt_path.with_suffix(".tmp"),
+        )
+        os.replace(ckpt_path.with_suffix(".tmp"), ckpt_path)
+        tqdm.write(f"checkpoint {ckpt_path} at step {step}: {json.dumps(point)}")
+        # the evaluation's time is not training time
+        cpu_mark, wall_mark = time.process_time(), time.time()
+
+    total = config.max_iterations
+    if config.run_steps is not None:
+        total = min(total, step + config.run_steps)
+    bar = tqdm(total=total, initial=step, desc="train", unit="step")
+    nets.det.train()
+    nets.crop.train()
+    while step < total and time.time() < deadline:
+        rng = np.random.default_rng([config.seed, step])
+        gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
+        det_b = detector_batch(ts, view_rows, len(catalog), batch_config, rng)
+        crop_b = crop_batch(ts, batch_config, rng, candidates)
+        losses.append(nets.step(det_b, crop_b, config.schedule(step), gen))
+        step += 1
+        if step % 20 == 0:
+            m = {k: f"{np.mean([d[k] for d in losses[-20:]]):.3f}" for k in losses[-1]}
+            bar.set_postfix(m, refresh=False)
+            bar.update(step - bar.n)
+        if time.time() - last_ckpt > config.checkpoint_minutes * 60 and step < total:
+            nets.det.eval(), nets.crop.eval()
+            checkpoint(final=False)
+            nets.det.train(), nets.crop.train()
+            last_ckpt = time.time()
+    bar.close()
+    nets.det.eval()
+    nets.crop.eval()
+    checkpoint(final=True)
+    cov_scale, val_metrics = calibrate(model_path, val, config.seed)
+    account()
+    extra = {
+        "architecture": (
+            f"two stages: BoxDetectorNet(width={config.width}) "
+            f"{sum(p.numel() for p in nets.det.parameters())} parameters, "
+            f"CropVotingNet(width={config.width}) "
+            f"{sum(p.numel() for p in nets.crop.parameters())} parameters"
+        ),
+        "training": {
+            "data": f"{config.n_scenes} scenes x {config.views_per_scene} views "
+            f"({config.robi_fraction:.0%} robi profile, the rest mixed), rendered at 1280x720, "
+            f"scene seeds scene_seed({TRAIN_SEED_BASE}, 0..{config.n_scenes - 1}); "
+            f"calibration scene_seed({VAL_SEED_BASE}, 0..{config.val_scenes - 1})",
+            "steps": step,
+            "schedule_steps": config.max_iterations,
+            "detector_batch": config.batch,
+            "crop_batch": config.crop_batch,
+            "cpu_hours": round(cpu_seconds / 3600, 3),
+            "wall_hours": round(wall_seconds / 3600, 3),
+            "render_minutes_this_run": round(render_minutes, 1),
+            "seed": config.seed,
+            "bf16_autocast": config.bf16,
+        },
+        "validation": val_metrics,
+        **config.extra,
+    }
+    card = _card(catalog, config, model_path, cov_scale, extra)
+    model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
+    return card.to_json()

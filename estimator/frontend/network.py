@@ -24,6 +24,13 @@ import numpy as np
 
 from estimator.errors import PosefuseError
 from estimator.frontend.detection import Detection
+from estimator.frontend.two_stage import (
+    TwoStageConfig,
+    crop_boxes,
+    decode_boxes,
+    suppress_duplicates,
+    vote_in_crop,
+)
 from estimator.frontend.voting import VotingConfig, vote_instances
 
 MEAN = (0.45, 0.45, 0.45)
@@ -59,6 +66,10 @@ class ModelCard:
     std: tuple[float, float, float] = STD
     cov_scale: float = 1.0
     extra: dict | None = None  # training data, metrics: free-form, for people
+    # "two_stage": boxes from this model, centers from ``two_stage["crop_model"]`` beside it
+    # (see estimator.frontend.two_stage); "center_voting": one network over the whole frame
+    kind: str = "center_voting"
+    two_stage: dict | None = None  # TwoStageConfig fields and "crop_model"
 
     def to_json(self) -> dict:
         return {
@@ -69,6 +80,8 @@ class ModelCard:
             "output_stride": self.output_stride,
             "normalisation": {"mean": list(self.mean), "std": list(self.std)},
             "voting_cov_scale": self.cov_scale,
+            "kind": self.kind,
+            **({"two_stage": self.two_stage} if self.two_stage else {}),
             **(self.extra or {}),
         }
 
@@ -83,7 +96,15 @@ class ModelCard:
                 "output_stride",
                 "normalisation",
                 "voting_cov_scale",
+                "kind",
+                "two_stage",
             }
+            kind = str(data.get("kind", "center_voting"))
+            if kind not in ("center_voting", "two_stage"):
+                raise ValueError(f"unknown kind {kind!r}")
+            two_stage = data.get("two_stage")
+            if kind == "two_stage" and not isinstance(two_stage, dict):
+                raise ValueError("a two_stage model needs its two_stage section")
             return ModelCard(
                 classes=tuple((int(c["obj_id"]), str(c["name"])) for c in data["classes"]),
                 catalog_hash=str(data["catalog_hash"]),
@@ -94,6 +115,8 @@ class ModelCard:
                 std=tuple(data["normalisation"]["std"]),
                 cov_scale=float(data.get("voting_cov_scale", 1.0)),
                 extra={k: v for k, v in data.items() if k not in known},
+                kind=kind,
+                two_stage=dict(two_stage) if kind == "two_stage" else None,
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise ModelError(path, f"model card is malformed ({exc!r})") from None
@@ -171,12 +194,17 @@ class NetworkFrontend:
         if deterministic:
             options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
             options.add_session_config_entry("session.use_deterministic_compute", "1")
-        try:
-            self.session = ort.InferenceSession(
-                str(self.model_path), options, providers=["CPUExecutionProvider"]
+        self.session = _session(ort, self.model_path, options)
+        self.crop_session = None
+        if self.card.kind == "two_stage":
+            fields = {f.name for f in dataclasses.fields(TwoStageConfig)}
+            self.two_stage = TwoStageConfig(
+                **{k: v for k, v in self.card.two_stage.items() if k in fields}
             )
-        except Exception as exc:  # onnxruntime raises its own exception types
-            raise ModelError(self.model_path, f"onnxruntime cannot load it ({exc})") from None
+            crop_path = self.model_path.parent / str(self.card.two_stage.get("crop_model", ""))
+            if not crop_path.is_file():
+                raise ModelError(crop_path, "the crop model of this two-stage card is missing")
+            self.crop_session = _session(ort, crop_path, options)
         self.input_name = self.session.get_inputs()[0].name
         base = voting or VotingConfig()
         self.voting = dataclasses.replace(base, cov_scale=self.card.cov_scale)
@@ -202,6 +230,8 @@ class NetworkFrontend:
 
     def detect(self, image: np.ndarray, stamp_seed: int = 0) -> list[Detection]:
         """Detections in one image (RGB uint8), in a fixed order (class, then votes)."""
+        if self.crop_session is not None:
+            return self._detect_two_stage(image, stamp_seed)
         out = self.infer(image)
         n_classes = len(self.card.classes)
         logits, vectors = out[: n_classes + 1], out[n_classes + 1 :]
@@ -249,3 +279,38 @@ class NetworkFrontend:
                 score = float((e[c] / e.sum(0)).mean())
                 detections.append(Detection(obj_id, bbox, center, cov, mask, score))
         return detections
+
+    def crop_infer(self, crops: np.ndarray) -> np.ndarray:
+        """(N, S, S, 3) uint8 crops -> (N, 3, g, g) stage-two output."""
+        x = (crops.astype(np.float32) / 255.0 - np.float32(self.card.mean)) / np.float32(
+            self.card.std
+        )
+        x = np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+        return self.crop_session.run(None, {self.crop_session.get_inputs()[0].name: x})[0]
+
+    def _detect_two_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
+        config = self.two_stage
+        boxes = decode_boxes(self.infer(image), self.card.input_scale, config)
+        crops, transforms = crop_boxes(image, boxes, config)
+        if not boxes:
+            return []
+        outs = self.crop_infer(crops)
+        rng = np.random.default_rng([self.seed, stamp_seed])
+        obj_ids = [k for k, _ in self.card.classes]
+        dets = []
+        for box, (a, b), out in zip(boxes, transforms, outs, strict=True):
+            det = vote_in_crop(
+                out, a, b, image.shape[:2], obj_ids[box.class_index], box.score,
+                self.voting, config, rng,
+            )
+            if det is not None and np.sqrt(np.trace(det.center_cov)) <= self.max_center_std_px:
+                dets.append(det)
+        dets = suppress_duplicates(dets, config.duplicate_factor)
+        return sorted(dets, key=lambda d: (d.obj_id, -d.score))
+
+
+def _session(ort, path: Path, options):
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ModelError(path, f"onnxruntime cannot load it ({exc})") from None

@@ -1,0 +1,52 @@
+"""Square crops of an image resized to a fixed size: the scale normalisation of stage two.
+
+A crop of side ``side`` image pixels centred at ``center`` is resampled to ``size`` x ``size``
+pixels. With pixel-center coordinates on both sides (pixel (0, 0) covers [-0.5, 0.5)), a crop
+pixel p maps to the image pixel
+
+    image = a * p + b,   a = side / size,   b = center - a * (size / 2 - 0.5)
+
+so the crop's own center lands on ``center``. Training cuts its crops with these same two
+functions, which is what makes the network's output mean the same thing at inference.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def crop_transform(center: np.ndarray, side: float, size: int) -> tuple[float, np.ndarray]:
+    """(a, b) of the crop (see the module docstring).
+
+    Args:
+        center: (2,) image pixel (x, y) the crop is centred on.
+        side: the crop's side in image pixels.
+        size: the crop's side in crop pixels.
+    Returns:
+        a: image pixels per crop pixel; b: (2,) image position of crop pixel (0, 0).
+    """
+    if not side > 0 or size <= 0:
+        raise ValueError(f"crop_transform: side and size must be positive, got {side}, {size}")
+    a = float(side) / size
+    return a, np.asarray(center, np.float64) - a * (size / 2 - 0.5)
+
+
+def warp_crop(image: np.ndarray, a: float, b: np.ndarray, size: int, interpolation: int) -> np.ndarray:
+    """The (size, size[, 3]) crop of ``image`` (H, W[, 3]) under image = a * crop + b; pixels
+    outside the image repeat its border. Only the region the crop covers is read (the image
+    may be a memory map)."""
+    H, W = image.shape[:2]
+    x0 = int(np.clip(np.floor(b[0]) - 1, 0, W - 1))
+    y0 = int(np.clip(np.floor(b[1]) - 1, 0, H - 1))
+    x1 = int(np.clip(np.ceil(b[0] + a * size) + 2, x0 + 1, W))
+    y1 = int(np.clip(np.ceil(b[1] + a * size) + 2, y0 + 1, H))
+    region = np.ascontiguousarray(image[y0:y1, x0:x1])
+    M = np.array([[a, 0.0, b[0] - x0], [0.0, a, b[1] - y0]])
+    return cv2.warpAffine(
+        region,
+        M,
+        (size, size),
+        flags=interpolation | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REPLICATE,
+    )

@@ -1,0 +1,170 @@
+"""The paper's two stages: boxes and classes on the downscaled frame, then a center per box.
+
+Stage one (``BoxDetectorNet`` in training, an ONNX model here) gives, on a grid of stride
+``det_stride`` over the detector's input, per class the probability that a visible box is
+centred at that cell, plus the box's log size and sub-cell offset. Peaks (3x3 local maxima
+above ``min_score``) are the boxes.
+
+Stage two (``CropVotingNet``) gets each box cropped square (``box_scale`` x its longer side)
+and resized to ``crop_size``: cropping normalises scale, and two touching parts of one type
+no longer compete for the same pixels, since each crop asks only for the part it is centred
+on. Its output labels the part's pixels and points each at the projected model origin;
+RANSAC voting (:mod:`estimator.frontend.voting`) on the labelled pixels gives the center and
+its covariance, mapped back to image pixels with the crop's transform.
+
+All functions take and return image pixels (pixel-center coordinates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.frontend.crops import crop_transform, warp_crop
+from estimator.frontend.detection import Detection
+from estimator.frontend.voting import VotingConfig, vote_instances
+
+
+@dataclass(frozen=True)
+class TwoStageConfig:
+    det_stride: int = 4
+    crop_size: int = 96
+    crop_stride: int = 4
+    box_scale: float = 1.2
+    min_score: float = 0.3  # heatmap peak probability
+    max_boxes: int = 100
+    min_crop_side: float = 16.0  # image pixels
+    min_votes: int = 10  # object pixels (crop output cells) a center needs
+    duplicate_factor: float = 0.3  # same-class centers closer than this x box side: one part
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """A stage-one box: class index (0-based, output order), center (2,) and size (2,)
+    (w, h) in image pixels, and its peak probability."""
+
+    class_index: int
+    center: np.ndarray
+    size: np.ndarray
+    score: float
+
+
+def decode_boxes(out: np.ndarray, input_scale: float, config: TwoStageConfig) -> list[Box]:
+    """Boxes from the detector's output.
+
+    Args:
+        out: (C + 4, h, w) heatmap probabilities, log w, log h (input pixels), offsets (cells).
+        input_scale: detector input pixels per image pixel.
+    Returns:
+        boxes, best first (at most ``config.max_boxes``).
+    """
+    n_classes = out.shape[0] - 4
+    heat = np.ascontiguousarray(out[:n_classes], np.float32)
+    peaks = []
+    for c in range(n_classes):
+        local_max = cv2.dilate(heat[c], np.ones((3, 3), np.uint8))
+        ys, xs = np.nonzero((heat[c] >= local_max) & (heat[c] >= config.min_score))
+        peaks.extend((float(heat[c, y, x]), c, y, x) for y, x in zip(ys, xs, strict=True))
+    peaks.sort(key=lambda p: -p[0])
+    s = config.det_stride
+    boxes = []
+    for score, c, y, x in peaks[: config.max_boxes]:
+        lw, lh, ox, oy = out[n_classes:, y, x]
+        gx, gy = x + float(ox), y + float(oy)
+        center_in = np.array([gx, gy]) * s + 0.5 * (s - 1)  # detector input pixels
+        center = (center_in + 0.5) / input_scale - 0.5
+        size = np.exp(np.clip([lw, lh], -2.0, 8.0)) / input_scale
+        boxes.append(Box(c, center, size, score))
+    return boxes
+
+
+def crop_boxes(image: np.ndarray, boxes: list[Box], config: TwoStageConfig):
+    """(crops (N, S, S, 3) uint8, transforms [(a, b)]) of the boxes, each square and centred."""
+    S = config.crop_size
+    crops, transforms = [], []
+    for box in boxes:
+        side = max(config.box_scale * float(box.size.max()), config.min_crop_side)
+        a, b = crop_transform(box.center, side, S)
+        crops.append(warp_crop(image, a, b, S, cv2.INTER_LINEAR))
+        transforms.append((a, b))
+    return (np.stack(crops) if crops else np.zeros((0, S, S, 3), np.uint8)), transforms
+
+
+def vote_in_crop(
+    crop_out: np.ndarray,
+    a: float,
+    b: np.ndarray,
+    image_hw: tuple[int, int],
+    obj_id: int,
+    box_score: float,
+    voting: VotingConfig,
+    config: TwoStageConfig,
+    rng: np.random.Generator,
+) -> Detection | None:
+    """The detection one crop's output gives, or None when it holds no part.
+
+    Args:
+        crop_out: (3, g, g) object logit and unit vectors on the crop's output grid.
+        a, b: the crop's transform (image = a * crop + b).
+    """
+    logit, vectors = crop_out[0], crop_out[1:]
+    g = logit.shape[0]
+    sel = logit > 0
+    if sel.sum() < config.min_votes:
+        return None
+    ys, xs = np.nonzero(sel)
+    pix = np.stack([xs, ys], 1).astype(np.float64)
+    vec = vectors[:, ys, xs].T.astype(np.float64)
+    instances = vote_instances(pix, vec, voting, rng)
+    if not instances:
+        return None
+    inst = instances[0]
+    if inst.n_votes < config.min_votes:
+        return None
+    # output cell -> crop pixel -> image pixel
+    a_out = a * config.crop_stride
+    b_out = b + a * 0.5 * (config.crop_stride - 1)
+    center = a_out * inst.center + b_out
+    cov = inst.cov * a_out**2
+    H, W = image_hw
+    members = pix[inst.pixels].astype(int)
+    cell = np.zeros((g, g), np.uint8)
+    cell[members[:, 1], members[:, 0]] = 1
+    # the mask in image pixels: each cell covers a_out x a_out image pixels around its center
+    x0 = max(int(np.floor(b_out[0] - a_out / 2)), 0)
+    y0 = max(int(np.floor(b_out[1] - a_out / 2)), 0)
+    x1 = min(int(np.ceil(b_out[0] + a_out * (g - 0.5))), W)
+    y1 = min(int(np.ceil(b_out[1] + a_out * (g - 0.5))), H)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    M = np.array([[1 / a_out, 0, (x0 - b_out[0]) / a_out], [0, 1 / a_out, (y0 - b_out[1]) / a_out]])
+    local = cv2.warpAffine(
+        cell, M, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    )
+    if not local.any():
+        return None
+    mask = np.zeros((H, W), bool)
+    mask[y0:y1, x0:x1] = local > 0
+    my, mx = np.nonzero(local)
+    bbox = np.array([x0 + mx.min(), y0 + my.min(), mx.max() - mx.min() + 1, my.max() - my.min() + 1], float)
+    fg = 1.0 / (1.0 + np.exp(-logit[members[:, 1], members[:, 0]].astype(np.float64)))
+    score = float(box_score * fg.mean())
+    return Detection(obj_id, bbox, center, cov, mask, score)
+
+
+def suppress_duplicates(dets: list[Detection], factor: float) -> list[Detection]:
+    """Of same-class detections whose centers lie closer than ``factor`` x the smaller box's
+    longer side, the best scored (two peaks of one part)."""
+    kept: list[Detection] = []
+    for d in sorted(dets, key=lambda d: -d.score):
+        side = d.bbox_xywh[2:].max()
+        if any(
+            k.obj_id == d.obj_id
+            and np.linalg.norm(k.center_uv - d.center_uv) < factor * min(side, k.bbox_xywh[2:].max())
+            for k in kept
+        ):
+            continue
+        kept.append(d)
+    return kept

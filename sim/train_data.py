@@ -1,0 +1,246 @@
+"""The two-stage front end's training data: bin views rendered once, kept on disk, cropped on
+the fly.
+
+A training set is a folder of numpy memory maps, rendered once per machine and reused by every
+run and every resume (the rendering is deterministic in its seeds, so a set rendered again on
+another machine is the same set):
+
+- ``full_rgb.u8``: (N, 720, 1280, 3) uint8 views at the camera's resolution, sensor noise
+  applied, exactly as test images and the service's frames are made;
+- ``full_inst.u8``: (N, 720, 1280) uint8 instance map, 0 for background and the bin, k + 1 for
+  the scene's instance k;
+- ``small_rgb.u8``: (N, Hs, Ws, 3) the views resized by the detector's input scale with the
+  front end's own ``cv2.resize``, padded to a multiple of 16;
+- ``instances.npy``: (M, 11) float64, one row per visible instance: view index, instance
+  index, class index (1..C), projected model origin (u, v), visible box (x0, y0, x1, y1) in
+  image pixels (exclusive ends), visible fraction, visible pixel count;
+- ``meta.json``: what was rendered, from which seeds.
+
+Visible fractions come from silhouettes rendered at a quarter of the resolution (counts of the
+visible mask against the unoccluded one at the same scale).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from estimator.objects import Catalog, load_catalog
+from estimator.render import CHROME, METAL, Renderer
+from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
+from sim.sensor import SensorModel, apply_rgb
+from sim.synth import BIN_ID, scene_seed
+
+FULL = REALSENSE_1280x720
+INSTANCE_COLUMNS = (
+    "view",
+    "instance",
+    "class",
+    "u",
+    "v",
+    "x0",
+    "y0",
+    "x1",
+    "y1",
+    "visib_fract",
+    "visible_px",
+)
+
+
+@dataclass(frozen=True)
+class RenderSpec:
+    """What a training set holds: ``n_scenes`` scenes of ``views`` views, scene seeds
+    ``scene_seed(seed_base, 0..n_scenes - 1)``, ``robi_fraction`` of them in the robi profile
+    (interleaved), the rest mixed."""
+
+    n_scenes: int
+    views: int
+    seed_base: int
+    robi_fraction: float = 0.5
+    small_scale: float = 0.5
+
+    def key(self) -> str:
+        return (
+            f"s{self.n_scenes}_v{self.views}_b{self.seed_base}_r{self.robi_fraction:g}"
+            f"_x{self.small_scale:g}"
+        )
+
+
+def profile_of(scene_index: int, robi_fraction: float) -> str:
+    """Which profile a training scene uses: ``robi_fraction`` of them, interleaved, are robi."""
+    robi = int((scene_index + 1) * robi_fraction) > int(scene_index * robi_fraction)
+    return "robi" if robi else "mixed"
+
+
+def class_index(catalog: Catalog) -> dict[int, int]:
+    """obj_id -> output class index 1..C (0 is background), in obj_id order."""
+    return {obj_id: k + 1 for k, obj_id in enumerate(sorted(catalog))}
+
+
+def small_size(scale: float) -> tuple[int, int]:
+    """(width, height) of the detector's input for a 1280x720 view, padded to 16."""
+    w, h = round(FULL.width * scale), round(FULL.height * scale)
+    return w + (-w % 16), h + (-h % 16)
+
+
+_CATALOGS: dict[str, Catalog] = {}
+
+
+def _cached_catalog(catalog_dir: str) -> Catalog:
+    if catalog_dir not in _CATALOGS:
+        _CATALOGS[catalog_dir] = load_catalog(catalog_dir)
+    return _CATALOGS[catalog_dir]
+
+
+def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """One scene's views as (rgb (720, 1280, 3) uint8, instance map (720, 1280) uint8, small
+    rgb (Hs, Ws, 3) uint8, instance rows (K, 10): the columns of ``INSTANCE_COLUMNS`` but the
+    view). The picklable unit of parallel rendering."""
+    catalog_dir, scene_index, views, seed_base, profile, small_scale = args
+    catalog = _cached_catalog(catalog_dir)
+    classes = class_index(catalog)
+    seed = scene_seed(seed_base, scene_index)
+    spec = dataclasses.replace(PROFILES[profile], n_views=views)
+    scene = make_scene(catalog, spec, seed, FULL)
+    if len(scene.instances) > 254:
+        raise ValueError(f"scene {scene_index}: {len(scene.instances)} instances exceed uint8")
+    materials = [CHROME if "screw" in catalog[i.obj_id].name else METAL for i in scene.instances]
+    meshes = [catalog[i.obj_id].mesh for i in scene.instances] + [scene.bin_mesh]
+    poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
+    ids = list(range(len(scene.instances))) + [BIN_ID]
+    renderer = Renderer(meshes, poses, ids, materials + [scene.bin_material])
+    rng = np.random.default_rng(seed + 1)
+    quarter = FULL.scaled(0.25)
+    sw, sh = round(FULL.width * small_scale), round(FULL.height * small_scale)
+    out = []
+    for T_world_cam in scene.T_world_cams:
+        res = renderer.render(FULL, T_world_cam, scene.lighting)
+        rgb = apply_rgb(res.image, SensorModel(), rng)
+        inst = np.where((res.instance >= 0) & (res.instance != BIN_ID), res.instance + 1, 0)
+        inst = inst.astype(np.uint8)
+        small = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
+        ph, pw = -sh % 16, -sw % 16
+        small = cv2.copyMakeBorder(small, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+        inst_q = cv2.resize(inst, (quarter.width, quarter.height), interpolation=cv2.INTER_NEAREST)
+        T_cam_world = np.linalg.inv(T_world_cam)
+        rows = []
+        for k, inst_k in enumerate(scene.instances):
+            ys, xs = np.nonzero(inst == k + 1)
+            if len(xs) == 0:
+                continue
+            t_cam = T_cam_world[:3, :3] @ inst_k.T_world_obj[:3, 3] + T_cam_world[:3, 3]
+            if t_cam[2] <= 0:
+                continue
+            u, v = FULL.project(t_cam)
+            full_q = renderer.render_mask(quarter, T_world_cam, k).sum()
+            visib = float(min((inst_q == k + 1).sum() / full_q, 1.0)) if full_q else 0.0
+            rows.append(
+                (k, classes[inst_k.obj_id], u, v, xs.min(), ys.min(), xs.max() + 1,
+                 ys.max() + 1, visib, len(xs))
+            )
+        out.append((rgb, inst, small, np.array(rows, np.float64).reshape(-1, 10)))
+    return out
+
+
+@dataclass
+class TrainingSet:
+    """A rendered training set, opened read-only (see the module docstring)."""
+
+    folder: Path
+    full_rgb: np.ndarray  # (N, 720, 1280, 3) uint8 memmap
+    full_inst: np.ndarray  # (N, 720, 1280) uint8 memmap
+    small_rgb: np.ndarray  # (N, Hs, Ws, 3) uint8 memmap
+    instances: np.ndarray  # (M, 11) float64
+    meta: dict
+
+    @property
+    def n_views(self) -> int:
+        return len(self.full_rgb)
+
+    def view_instances(self) -> list[np.ndarray]:
+        """Per view, (K, 11) its instance rows."""
+        order = self.instances[:, 0].astype(int)
+        return [self.instances[order == k] for k in range(self.n_views)]
+
+
+def open_training_set(folder: str | Path) -> TrainingSet:
+    folder = Path(folder)
+    meta_path = folder / "meta.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{folder}: not a rendered training set (no meta.json)")
+    meta = json.loads(meta_path.read_text())
+    n = meta["n_views"]
+    sw, sh = meta["small_size"]
+    return TrainingSet(
+        folder,
+        np.memmap(folder / "full_rgb.u8", np.uint8, "r", shape=(n, FULL.height, FULL.width, 3)),
+        np.memmap(folder / "full_inst.u8", np.uint8, "r", shape=(n, FULL.height, FULL.width)),
+        np.memmap(folder / "small_rgb.u8", np.uint8, "r", shape=(n, sh, sw, 3)),
+        np.load(folder / "instances.npy"),
+        meta,
+    )
+
+
+def render_training_set(
+    catalog_dir: str | Path, spec: RenderSpec, root: str | Path, workers: int = 2, desc="render"
+) -> TrainingSet:
+    """The training set of ``spec`` under ``root``, rendered unless it is there already
+    (complete sets only: ``meta.json`` is written last)."""
+    from estimator.frontend.network import catalog_hash
+
+    # a set belongs to its catalog: the same spec of another catalog is another set
+    folder = Path(root) / f"{catalog_hash(_cached_catalog(str(catalog_dir)))[:8]}_{spec.key()}"
+    if (folder / "meta.json").is_file():
+        return open_training_set(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    n = spec.n_scenes * spec.views
+    sw, sh = small_size(spec.small_scale)
+    full_rgb = np.memmap(
+        folder / "full_rgb.u8", np.uint8, "w+", shape=(n, FULL.height, FULL.width, 3)
+    )
+    full_inst = np.memmap(folder / "full_inst.u8", np.uint8, "w+", shape=(n, FULL.height, FULL.width))
+    small_rgb = np.memmap(folder / "small_rgb.u8", np.uint8, "w+", shape=(n, sh, sw, 3))
+    jobs = [
+        (str(catalog_dir), k, spec.views, spec.seed_base, profile_of(k, spec.robi_fraction),
+         spec.small_scale)
+        for k in range(spec.n_scenes)
+    ]
+    rows = []
+    index = 0
+    pool = get_context("spawn").Pool(workers) if workers > 1 else None
+    try:
+        results = pool.imap(render_scene, jobs) if pool else map(render_scene, jobs)
+        with tqdm(total=spec.n_scenes, desc=desc, unit="scene") as bar:
+            for views in results:
+                for rgb, inst, small, inst_rows in views:
+                    full_rgb[index] = rgb
+                    full_inst[index] = inst
+                    small_rgb[index] = small
+                    rows.append(
+                        np.concatenate([np.full((len(inst_rows), 1), index), inst_rows], 1)
+                    )
+                    index += 1
+                bar.update(1)
+    finally:
+        if pool:
+            pool.close()
+            pool.join()
+    for m in (full_rgb, full_inst, small_rgb):
+        m.flush()
+    np.save(folder / "instances.npy", np.concatenate(rows, 0) if rows else np.zeros((0, 11)))
+    meta = {
+        "n_views": n,
+        "small_size": [sw, sh],
+        "spec": dataclasses.asdict(spec),
+        "catalog": str(catalog_dir),
+        "instance_columns": list(INSTANCE_COLUMNS),
+    }
+    (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return open_training_set(folder)

@@ -1,0 +1,185 @@
+"""Training batches of the two-stage front end, drawn from a rendered training set.
+
+Every batch is a function of (seed, step) alone (``np.random.default_rng([seed, step, k])``),
+so a resumed run sees exactly the stream an uninterrupted one would have.
+
+- Detector batches: crops of the downscaled views (most of them holding a part), with
+  CenterNet targets on the output grid: per class a Gaussian peak at each visible box's
+  center, the box's log size and sub-cell offset at the peak, and a weight map that ignores
+  the peaks of barely visible parts (finding them is neither required nor wrong).
+- Crop batches: one visible instance per sample, its box jittered as stage one's boxes are,
+  cut out of the full-resolution view and resized to the crop size (the same warp as the
+  front end's), with the instance's own pixels as the object label and unit vectors towards
+  its projected model origin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from estimator.frontend.crops import crop_transform, warp_crop
+
+DET_STRIDE = 4
+CROP_STRIDE = 4
+MIN_POSITIVE_VISIB = 0.3  # less visible parts are neither targets nor negatives
+MIN_TARGET_VISIB = 0.1
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    det_batch: int = 16
+    det_crop: tuple[int, int] = (256, 320)  # input pixels (height, width), multiples of 16
+    crop_batch: int = 48
+    crop_size: int = 96
+    box_scale: float = 1.2  # crop side = box_scale x the box's longer side
+    center_jitter: float = 0.12  # x the box's longer side
+    scale_jitter: float = 0.2  # log scale
+    background_crops: float = 0.1  # share of crop samples centred on no part
+    on_part: float = 0.85  # share of detector crops that hold a part's center
+
+
+def det_targets(
+    rows: np.ndarray, scale: float, origin_xy: tuple[int, int], grid_hw: tuple[int, int], n_classes: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """CenterNet targets of one detector crop.
+
+    Args:
+        rows: (K, 11) the view's instance rows (see ``sim.train_data``), image pixels.
+        scale: detector input pixels per image pixel.
+        origin_xy: top-left of the crop in detector input pixels.
+        grid_hw: (h, w) output cells of the crop.
+    Returns:
+        heat: (C, h, w) float32 target in [0, 1]; weight: (h, w) float32 (0: ignored);
+        box: (4, h, w) float32 log width, log height (input pixels), offset x, y (cells);
+        box_mask: (h, w) float32, 1 at the positive peaks.
+    """
+    h, w = grid_hw
+    heat = np.zeros((n_classes, h, w), np.float32)
+    weight = np.ones((h, w), np.float32)
+    box = np.zeros((4, h, w), np.float32)
+    box_mask = np.zeros((h, w), np.float32)
+    ox, oy = origin_xy
+    for r in rows:
+        cls = int(r[2])
+        x0, y0, x1, y1 = r[5:9] * scale  # box edges in input pixels
+        bw, bh = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
+        # box center (pixel-center coordinates) -> output cell coordinates of the crop
+        gx = ((x0 + x1) / 2 - 0.5 - ox - 0.5 * (DET_STRIDE - 1)) / DET_STRIDE
+        gy = ((y0 + y1) / 2 - 0.5 - oy - 0.5 * (DET_STRIDE - 1)) / DET_STRIDE
+        cx, cy = int(round(gx)), int(round(gy))
+        if not (0 <= cx < w and 0 <= cy < h):
+            continue
+        if r[9] < MIN_POSITIVE_VISIB:
+            weight[max(cy - 1, 0) : cy + 2, max(cx - 1, 0) : cx + 2] = 0.0
+            continue
+        sigma = max(0.6, min(bw, bh) / DET_STRIDE / 6.0)
+        rad = int(np.ceil(3 * sigma))
+        ya, yb = max(cy - rad, 0), min(cy + rad + 1, h)
+        xa, xb = max(cx - rad, 0), min(cx + rad + 1, w)
+        yy, xx = np.mgrid[ya:yb, xa:xb]
+        g = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2)).astype(np.float32)
+        np.maximum(heat[cls - 1, ya:yb, xa:xb], g, out=heat[cls - 1, ya:yb, xa:xb])
+        box[:, cy, cx] = (np.log(bw), np.log(bh), gx - cx, gy - cy)
+        box_mask[cy, cx] = 1.0
+    return heat, weight, box, box_mask
+
+
+def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.random.Generator):
+    """(images (B, H, W, 3) uint8, heat (B, C, h, w), weight (B, h, w), box (B, 4, h, w),
+    box_mask (B, h, w))."""
+    H, W = ts.small_rgb.shape[1:3]
+    ch, cw = config.det_crop
+    scale = ts.meta["spec"]["small_scale"]
+    ny, nx = (H - ch) // 16 + 1, (W - cw) // 16 + 1
+    views = rng.integers(ts.n_views, size=config.det_batch)
+    out = [], [], [], [], []
+    for i in views:
+        rows = view_rows[i]
+        y0, x0 = int(rng.integers(ny)) * 16, int(rng.integers(nx)) * 16
+        if len(rows) and rng.random() < config.on_part:
+            r = rows[rng.integers(len(rows))]
+            px, py = (r[5] + r[7]) / 2 * scale, (r[6] + r[8]) / 2 * scale
+            lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
+            lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
+            lo_x, hi_x, lo_y, hi_y = max(lo_x, 0), min(hi_x, nx - 1), max(lo_y, 0), min(hi_y, ny - 1)
+            if lo_x <= hi_x:
+                x0 = int(rng.integers(lo_x, hi_x + 1)) * 16
+            if lo_y <= hi_y:
+                y0 = int(rng.integers(lo_y, hi_y + 1)) * 16
+        image = np.asarray(ts.small_rgb[i, y0 : y0 + ch, x0 : x0 + cw])
+        heat, weight, box, box_mask = det_targets(
+            rows, scale, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes
+        )
+        if rng.random() < 0.5:  # a mirrored bin is as plausible a bin
+            image = image[:, ::-1]
+            heat, weight, box, box_mask = (
+                heat[:, :, ::-1], weight[:, ::-1], box[:, :, ::-1].copy(), box_mask[:, ::-1]
+            )
+            # mirroring moves each cell's center by the stride's odd half: offsets flip sign
+            box[2] = -box[2]
+        for lst, a in zip(out, (image, heat, weight, box, box_mask), strict=True):
+            lst.append(np.ascontiguousarray(a))
+    return tuple(np.stack(a) for a in out)
+
+
+def crop_targets(
+    inst_map: np.ndarray, k: int, uv: np.ndarray, a: float, b: np.ndarray, size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Object label and unit vectors of one crop on its output grid.
+
+    Args:
+        inst_map: (H, W) uint8 instance map of the view (k + 1 for instance k).
+        uv: (2,) the instance's projected model origin, image pixels; k < 0: no target.
+        a, b: the crop's transform, image = a * crop + b (pixel-center coordinates).
+    Returns:
+        label: (g, g) float32 in {0, 1}; vec: (2, g, g) float32 unit vectors (0 off the part).
+    """
+    g = size // CROP_STRIDE
+    a_out = a * CROP_STRIDE
+    b_out = b + a * 0.5 * (CROP_STRIDE - 1)
+    lab = warp_crop(inst_map, a_out, b_out, g, cv2.INTER_NEAREST)
+    label = (lab == k + 1).astype(np.float32) if k >= 0 else np.zeros((g, g), np.float32)
+    j = np.arange(g, dtype=np.float64)
+    px = a_out * j[None, :] + b_out[0]
+    py = a_out * j[:, None] + b_out[1]
+    dx, dy = uv[0] - px, uv[1] - py
+    n = np.maximum(np.hypot(dx, dy), 1e-6)
+    vec = np.stack([dx / n, dy / n]).astype(np.float32) * label[None]
+    return label, vec
+
+
+def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np.ndarray):
+    """(crops (B, S, S, 3) uint8, label (B, g, g), vec (B, 2, g, g)).
+
+    Args:
+        candidates: indices of the instance rows that may be drawn (visible enough).
+    """
+    rows = ts.instances[candidates[rng.integers(len(candidates), size=config.crop_batch)]]
+    S = config.crop_size
+    H, W = ts.full_rgb.shape[1:3]
+    crops, labels, vecs = [], [], []
+    for r in rows:
+        view = int(r[0])
+        x0, y0, x1, y1 = r[5:9]
+        side = max(x1 - x0, y1 - y0)
+        center = np.array([(x0 + x1) / 2 - 0.5, (y0 + y1) / 2 - 0.5])
+        k = int(r[1])
+        if rng.random() < config.background_crops:
+            center = np.array([rng.uniform(0, W), rng.uniform(0, H)])
+            k = -1
+        center = center + rng.uniform(-1, 1, 2) * config.center_jitter * side
+        crop_side = max(config.box_scale * side * np.exp(rng.uniform(-1, 1) * config.scale_jitter), 16.0)
+        a, b = crop_transform(center, crop_side, S)
+        crop = warp_crop(ts.full_rgb[view], a, b, S, cv2.INTER_LINEAR)
+        label, vec = crop_targets(ts.full_inst[view], k, r[3:5], a, b, S)
+        if k >= 0 and label.sum() == 0:
+            k = -1
+        if rng.random() < 0.5:
+            crop, label, vec = crop[:, ::-1], label[:, ::-1], vec[:, :, ::-1] * np.array([-1, 1], np.float32)[:, None, None]
+        crops.append(np.ascontiguousarray(crop))
+        labels.append(np.ascontiguousarray(label))
+        vecs.append(np.ascontiguousarray(vec))
+    return np.stack(crops), np.stack(labels), np.stack(vecs)

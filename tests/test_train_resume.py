@@ -1,0 +1,82 @@
+"""Training is a resumable job: a run stopped and resumed ends where an uninterrupted one ends
+(same batches, same schedule), keeps its cumulative CPU time, and fine-tuning for another
+catalog keeps everything but the class heatmaps."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from service.resources import DEFAULT_CATALOG  # noqa: E402
+from sim.train import TrainConfig, train  # noqa: E402
+
+
+def _config(tmp_path, **kw) -> TrainConfig:
+    base = dict(
+        n_scenes=1,
+        views_per_scene=1,
+        val_scenes=1,
+        minutes=1e6,  # never the limit: steps are
+        max_iterations=6,
+        warmup=2,
+        batch=2,
+        crop_batch=4,
+        workers=1,
+        data_dir=str(tmp_path / "data"),
+        threads=1,
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _weights(ckpt) -> dict:
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    return {**{f"det.{k}": v for k, v in state["nets"]["det"].items()},
+            **{f"crop.{k}": v for k, v in state["nets"]["crop"].items()}}, state
+
+
+def test_a_resumed_run_ends_where_an_uninterrupted_one_ends(tmp_path):
+    straight = tmp_path / "straight"
+    train(DEFAULT_CATALOG, straight / "m.onnx", _config(tmp_path))
+    split = tmp_path / "split"
+    train(DEFAULT_CATALOG, split / "m.onnx", _config(tmp_path, run_steps=3))
+    w_half, half = _weights(split / "m.ckpt")
+    assert half["step"] == 3 and half["cpu_seconds"] > 0
+    # a resume keeps the checkpoint's schedule and stream, whatever this run is told
+    card = train(
+        DEFAULT_CATALOG,
+        split / "m.onnx",
+        _config(tmp_path, resume=str(split / "m.ckpt"), max_iterations=1000, seed=5),
+    )
+    w_split, end = _weights(split / "m.ckpt")
+    w_straight, _ = _weights(straight / "m.ckpt")
+    assert end["step"] == 6 and card["training"]["steps"] == 6
+    assert end["cpu_seconds"] > half["cpu_seconds"]
+    moved = 0
+    for k, v in w_straight.items():
+        if not v.is_floating_point():
+            continue
+        # the same batches, schedule and optimizer state: the same weights
+        assert torch.allclose(w_split[k], v, rtol=1e-5, atol=1e-7), k
+        moved += int(not torch.equal(w_half[k], v))
+    assert moved > 10  # the second half did train
+    assert (split / "m_crop.onnx").is_file()
+    assert json.loads((split / "m.json").read_text())["kind"] == "two_stage"
+
+
+def test_fine_tuning_replaces_only_the_class_heatmaps(tmp_path):
+    from sim.train import _Nets
+
+    base = _Nets(5, _config(tmp_path))
+    other = _Nets(2, _config(tmp_path, seed=1))
+    fresh = other.init_from({"det": base.det.state_dict(), "crop": base.crop.state_dict()})
+    assert fresh == ["heatmap.weight", "heatmap.bias"]
+    for k, v in base.det.state_dict().items():
+        if not k.startswith("heatmap."):
+            assert torch.equal(other.det.state_dict()[k], v), k
+    assert other.det.heatmap.weight.shape[0] == 2
+    assert np.isclose(float(other.det.heatmap.bias[0]), -2.19)

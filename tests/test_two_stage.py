@@ -1,0 +1,112 @@
+"""The two-stage front end's geometry: what training asks the networks for, decoded by the
+front end's own code, gives back the truth (boxes, centers, masks), on a rendered view."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.frontend.crops import crop_transform, warp_crop
+from estimator.frontend.two_stage import (
+    TwoStageConfig,
+    crop_boxes,
+    decode_boxes,
+    suppress_duplicates,
+    vote_in_crop,
+)
+from estimator.frontend.voting import VotingConfig
+from service.resources import DEFAULT_CATALOG
+from sim.train_data import render_scene
+from sim.train_targets import BatchConfig, crop_targets, det_targets
+
+
+@pytest.fixture(scope="module")
+def view():
+    """One robi-profile view: (rgb, instance map, small rgb, instance rows (K, 11))."""
+    rgb, inst, small, rows = render_scene((str(DEFAULT_CATALOG), 3, 1, 123_456, "robi", 0.5))[0]
+    rows = np.concatenate([np.zeros((len(rows), 1)), rows], 1)
+    return rgb, inst, small, rows
+
+
+def test_crop_transform_centres_the_crop_and_warp_reads_it():
+    image = np.zeros((100, 120), np.uint8)
+    image[40, 70] = 255  # one bright pixel
+    a, b = crop_transform(np.array([70.0, 40.0]), side=20.0, size=40)
+    crop = warp_crop(image, a, b, 40, 0)  # nearest
+    ys, xs = np.nonzero(crop)
+    # the crop's center pixels (19.5, 19.5) map to (70, 40): the bright pixel covers 2x2 there
+    assert np.allclose([xs.mean(), ys.mean()], [19.5, 19.5], atol=0.6)
+    assert np.allclose(a * np.array([19.5, 19.5]) + b, [70.0, 40.0])
+    with pytest.raises(ValueError, match="positive"):
+        crop_transform(np.zeros(2), 0.0, 40)
+
+
+def test_detector_targets_decode_to_the_visible_boxes(view):
+    _, _, small, rows = view
+    scale = 0.5
+    h, w = small.shape[0] // 4, small.shape[1] // 4
+    heat, weight, box, box_mask = det_targets(rows, scale, (0, 0), (h, w), 5)
+    out = np.concatenate([heat, box], 0)
+    boxes = decode_boxes(out, scale, TwoStageConfig(min_score=0.99))
+    positives = rows[rows[:, 9] >= 0.3]
+    assert len(boxes) == len(positives) > 10
+    truth = np.stack([(positives[:, 5] + positives[:, 7]) / 2 - 0.5,
+                      (positives[:, 6] + positives[:, 8]) / 2 - 0.5], 1)
+    for b in boxes:
+        d = np.linalg.norm(truth - b.center, axis=1)
+        j = int(np.argmin(d))
+        assert d[j] < 0.6  # the offset restores the center to a fraction of an image pixel
+        assert int(positives[j, 2]) - 1 == b.class_index
+        size = positives[j, 7:9] - positives[j, 5:7]
+        assert np.allclose(b.size, size, rtol=0.02, atol=1.0)
+    # barely visible parts are ignored, not taught as background
+    assert (weight == 0).sum() >= 9 * (rows[:, 9] < 0.3).sum() * 0.5
+
+
+def test_a_perfect_crop_output_votes_the_true_center_and_mask(view):
+    rgb, inst, _, rows = view
+    config = TwoStageConfig()
+    voting = VotingConfig(min_inliers=config.min_votes)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for r in rows[rows[:, 9] > 0.75][:8]:
+        k = int(r[1])
+        side = max(r[7] - r[5], r[8] - r[6])
+        center = np.array([(r[5] + r[7]) / 2 - 0.5 + 3.0, (r[6] + r[8]) / 2 - 0.5 - 2.0])
+        a, b = crop_transform(center, BatchConfig().box_scale * side, config.crop_size)
+        label, vec = crop_targets(inst, k, r[3:5], a, b, config.crop_size)
+        out = np.concatenate([(label * 20 - 10)[None], vec], 0)
+        det = vote_in_crop(out, a, b, inst.shape, 7, 0.9, voting, config, rng)
+        assert det is not None and det.obj_id == 7
+        assert np.linalg.norm(det.center_uv - r[3:5]) < 0.5
+        truth_mask = inst == k + 1
+        iou = (det.mask & truth_mask).sum() / (det.mask | truth_mask).sum()
+        assert iou > 0.6  # the mask is the label at a quarter of the crop's resolution
+        checked += 1
+    assert checked >= 5
+
+
+def test_an_empty_crop_output_gives_no_detection():
+    config = TwoStageConfig()
+    g = config.crop_size // config.crop_stride
+    out = np.zeros((3, g, g), np.float32)
+    out[0] = -5.0
+    a, b = crop_transform(np.array([50.0, 50.0]), 40.0, config.crop_size)
+    assert vote_in_crop(out, a, b, (100, 100), 1, 1.0, VotingConfig(), config, np.random.default_rng(0)) is None
+
+
+def test_crops_of_boxes_and_duplicates(view):
+    rgb, _, small, rows = view
+    heat, _, box, _ = det_targets(rows, 0.5, (0, 0), (small.shape[0] // 4, small.shape[1] // 4), 5)
+    boxes = decode_boxes(np.concatenate([heat, box], 0), 0.5, TwoStageConfig(min_score=0.99))
+    crops, transforms = crop_boxes(rgb, boxes, TwoStageConfig())
+    assert crops.shape == (len(boxes), 96, 96, 3) and crops.dtype == np.uint8
+    for bx, (a, b) in zip(boxes, transforms, strict=True):
+        assert np.allclose(a * 47.5 + b, bx.center)
+    from estimator.frontend.detection import Detection
+
+    def det(x, score):
+        return Detection(1, [x - 10, 0, 20, 20], [x, 10], np.eye(2), None, score)
+
+    kept = suppress_duplicates([det(10, 0.5), det(12, 0.9), det(40, 0.4)], 0.3)
+    assert [d.score for d in kept] == [0.9, 0.4]
