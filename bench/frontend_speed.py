@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from estimator.dataset import load_dataset
-from estimator.frontend.network import NetworkFrontend
+from estimator.frontend.network import NetworkFrontend, input_scale_for
 
 
 def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:
@@ -35,7 +35,9 @@ def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple
         t["total"] = time.perf_counter() - t0
         return t, len(dets)
     config = frontend.two_stage
-    boxes = decode_boxes(frontend.infer(image), frontend.card.input_scale, config)
+    boxes = decode_boxes(
+        frontend.infer(image), input_scale_for(image.shape[:2], frontend.card), config
+    )
     t1 = time.perf_counter()
     crops, transforms = crop_boxes(image, boxes, config)
     t2 = time.perf_counter()

@@ -122,10 +122,26 @@ class ModelCard:
             raise ModelError(path, f"model card is malformed ({exc!r})") from None
 
 
+MIN_IMAGE_SIDE = 32  # pixels: smaller images hold no part a camera could be asked about
+
+
+def input_scale_for(image_hw: tuple[int, int], card: ModelCard) -> float:
+    """Network input pixels per image pixel for an image of this size.
+
+    A one-stage model takes its own image size only (``card.input_scale``). The two-stage
+    detector sees every image at the width it was trained at (640 px for 1280x720 at 0.5),
+    whatever the sensor's resolution or aspect; stage two crops from the image itself, so
+    centers, masks and covariances come back in the image's own pixels."""
+    if card.kind != "two_stage":
+        return card.input_scale
+    return card.input_scale * card.image_size[0] / image_hw[1]
+
+
 def preprocess(image: np.ndarray, card: ModelCard) -> np.ndarray:
     """(H, W, 3) uint8 RGB -> (1, 3, H', W') float32, H' and W' multiples of 16."""
     h, w = image.shape[:2]
-    sw, sh = round(w * card.input_scale), round(h * card.input_scale)
+    scale = input_scale_for((h, w), card)
+    sw, sh = max(round(w * scale), 1), max(round(h * scale), 1)
     small = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA)
     ph, pw = -sh % 16, -sw % 16
     if ph or pw:
@@ -218,13 +234,20 @@ class NetworkFrontend:
             raise ValueError("image: expected a uint8 numpy array")
         if image.ndim != 3 or image.shape[2] != 3:
             raise ValueError(f"image: expected (H, W, 3) RGB, got shape {image.shape}")
-        if image.shape[:2] != (h, w):
+        if self.card.kind == "two_stage":
+            if min(image.shape[:2]) < MIN_IMAGE_SIDE:
+                raise ValueError(
+                    f"image: {image.shape[1]}x{image.shape[0]} is smaller than "
+                    f"{MIN_IMAGE_SIDE} px on a side"
+                )
+        elif image.shape[:2] != (h, w):
             raise ValueError(
                 f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}"
             )
 
     def infer(self, image: np.ndarray) -> np.ndarray:
-        """(C + 3, h, w) raw output: class logits then the unit vectors."""
+        """The first network's raw output: (C + 3, h, w) class logits then unit vectors for
+        a one-stage model; (C + 4, h, w) heatmaps, box size and offset for a two-stage one."""
         self.check_image(image)
         return self.session.run(None, {self.input_name: preprocess(image, self.card)})[0][0]
 
@@ -290,7 +313,9 @@ class NetworkFrontend:
 
     def _detect_two_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
         config = self.two_stage
-        boxes = decode_boxes(self.infer(image), self.card.input_scale, config)
+        boxes = decode_boxes(
+            self.infer(image), input_scale_for(image.shape[:2], self.card), config
+        )
         crops, transforms = crop_boxes(image, boxes, config)
         if not boxes:
             return []
