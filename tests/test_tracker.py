@@ -101,16 +101,25 @@ def test_tracks_unseen_while_in_view_are_dropped(robi_catalog, runs):
         est.update(view.frame, view.detections)
     confirmed = {k for k, t in est.tracks.items() if t.status == CONFIRMED}
     assert confirmed
-    # the cameras see the bin, but nothing is detected: a track seen in 3 views goes after 3
-    # misses (max_misses 2 is the floor)
     seen = {k: est.tracks[k].views_seen for k in confirmed}
     assert max(seen.values()) <= 3
-    est.update(seq.views[3].frame, [])
-    est.update(seq.views[4].frame, [])
-    assert {k for k, n in seen.items() if n == 3} <= set(est.tracks)
-    est.update(seq.views[5].frame, [])
+    # a camera turned away from the bin sees none of them: nothing counts as a miss
+    frame = seq.views[3].frame
+    away = frame.T_world_cam.copy()
+    away[:3, :3] = away[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # looking the other way
+    est.update(Frame(frame.stamp_ns, frame.camera, away), [])
+    assert confirmed <= set(est.tracks) and not est.last_report.dropped
+    assert all(est.tracks[k].misses == 0 for k in confirmed)
+    # the cameras see the bin, but nothing is detected: a confirmed track seen in n views goes
+    # at its max(2, n)-th miss (max_misses 2 is the floor), not before, not after
+    dropped_at = {}
+    for misses, view in enumerate(seq.views[3:6], start=1):
+        est.update(view.frame, [])
+        for key in est.last_report.dropped:
+            dropped_at[key] = misses
+        assert not {k for k in confirmed if k not in dropped_at} - set(est.tracks)
+    assert {k: dropped_at.get(k) for k in confirmed} == {k: max(2, n) for k, n in seen.items()}
     assert not confirmed & set(est.tracks)
-    assert set(est.last_report.dropped) | confirmed
 
 
 def _frame(T=None):
