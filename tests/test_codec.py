@@ -102,28 +102,50 @@ def test_bad_images_and_infos():
 
 
 @pytest.mark.parametrize("encoding", ["png", "jpeg"])
-def test_decompression_bombs_are_refused_before_decoding(encoding):
-    """20000x20000 declared small: refused from the stream's header, within a few ms, without
-    allocating the image; declared honestly, refused by the pixel limit."""
-    import resource
-    import time
+def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
+    """20000x20000 declared small: refused from the stream's header, the decoder never called
+    and no image allocated; declared honestly, refused by the pixel limit. An honest small
+    image goes through the same decoder (so the spy sees the path a bomb would take)."""
+    import tracemalloc
+
+    import cv2
 
     from bench.bombs import image_message, jpeg_bomb, png_bomb
     from service.codec import compressed_image_size
 
+    decoded = []
+    real_imdecode = cv2.imdecode
+
+    def spy(buf, flags):
+        decoded.append(len(buf))
+        if len(decoded) > 1 or len(buf) != len(small):
+            raise AssertionError(f"cv2.imdecode called on a {len(buf)}-byte stream")
+        return real_imdecode(buf, flags)
+
+    ext = ".png" if encoding == "png" else ".jpg"
+    small = cv2.imencode(ext, np.full((24, 32, 3), 128, np.uint8))[1].tobytes()
     stream = png_bomb() if encoding == "png" else jpeg_bomb()
     assert compressed_image_size(stream, encoding) == (20000, 20000)
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    t0 = time.perf_counter()
-    with pytest.raises(DecodeError, match="header says 20000x20000") as info:
-        decode_image(image_message(stream, encoding, 1, declared=(100, 100)))
-    assert info.value.code == "header_mismatch"
-    with pytest.raises(DecodeError, match="exceeds the limit") as info:
-        decode_image(image_message(stream, encoding, 1, declared=(8192, 8192)))
-    assert info.value.code == "too_large"
-    assert time.perf_counter() - t0 < 0.5
-    grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
-    assert grown_mb < 50
+    monkeypatch.setattr(cv2, "imdecode", spy)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DecodeError, match="header says 20000x20000") as info:
+            decode_image(image_message(stream, encoding, 1, declared=(100, 100)))
+        assert info.value.code == "header_mismatch"
+        with pytest.raises(DecodeError, match="exceeds the limit") as info:
+            decode_image(image_message(stream, encoding, 1, declared=(8192, 8192)))
+        assert info.value.code == "too_large"
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert decoded == []  # refused before any decoding
+    assert peak < 2 * len(stream) + 4 * 2**20, peak  # the message, not a 1.2 GB image
+    assert decode_image(image_message(small, encoding, 1, declared=(32, 24))).image.shape == (
+        24,
+        32,
+        3,
+    )
+    assert decoded == [len(small)]
 
 
 def test_compressed_image_size_reads_real_headers():
@@ -229,9 +251,7 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
     small = _png([_ihdr(4096, 4096), idat, (b"IEND", b"")])  # 38 kB of pixels for 50 MB
     assert refused(small, "png", (4096, 4096)) == "png_ratio"
     padded = (b"IDAT", zlib.compress(raw) + bytes(100_000))
-    assert refused(_png([_ihdr(64, 64), padded, (b"IEND", b"")]), "png", (64, 64)) == (
-        "png_ratio"
-    )
+    assert refused(_png([_ihdr(64, 64), padded, (b"IEND", b"")]), "png", (64, 64)) == ("png_ratio")
 
 
 def test_what_cameras_and_encoders_write_passes_the_structure_checks():
