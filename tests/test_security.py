@@ -7,7 +7,6 @@ import datetime
 import ipaddress
 import json
 import threading
-import time
 
 import msgpack
 import pytest
@@ -112,6 +111,25 @@ def _session(endpoint: str, **extra):
     return zenoh.open(conf)
 
 
+def _state_replies(session, timeout: float = 3):
+    return [r.ok for r in session.get(f"{CELL}/@v1/estimator/state", timeout=timeout) if r.ok]
+
+
+def _wait_linked(session, *input_keys: str):
+    """Until the daemon answers a state query over ``session`` (the link is up and its
+    queryables are known here) and every input key has a subscriber: after this, a query or a
+    message that gets nowhere was refused, not early."""
+    wait_until(lambda: _state_replies(session, 1), 30, what="the daemon's state queryable")
+    for key in input_keys:
+        publisher = session.declare_publisher(key)
+        try:
+            wait_until(
+                lambda p=publisher: p.matching_status.matching, 30, what=f"a subscriber of {key}"
+            )
+        finally:
+            publisher.undeclare()
+
+
 def _reset(session, attachment=None):
     kwargs = {"payload": b"", "timeout": 3}
     if attachment is not None:
@@ -138,7 +156,7 @@ def test_zenoh_reset_needs_the_api_token(tracked_worker_factory):
     n = len(daemon.worker.snapshot())
     assert n >= 3
     with running(daemon), _session(f"tcp/127.0.0.1:{port}") as session:
-        time.sleep(0.5)
+        _wait_linked(session)
         assert "unauthorized" in _reset(session)[0]["error"]
         assert "unauthorized" in _reset(session, b"wrong")[0]["error"]
         assert len(daemon.worker.snapshot()) == n
@@ -171,8 +189,8 @@ def test_tls_listener_of_a_config_file_exchanges_a_frame(tmp_path, robi_catalog)
     daemon = Daemon(Settings(cell=CELL, zenoh_config=config), worker)
     tls_client = {"transport/link/tls/root_ca_certificate": str(certs["ca"])}
     with running(daemon), _session(f"tls/localhost:{port}", **tls_client) as session:
-        time.sleep(0.5)
         cam = FakeCamera(session, CELL, "tls-cam")
+        _wait_linked(session, cam.key("info"), cam.key("pose"), cam.key("image"))
         cam.info()
         cam.frame(5 * SECOND)
         wait_until(lambda: daemon.stats.processed == 1, 20, what="the frame over TLS")
@@ -209,8 +227,11 @@ def test_an_access_control_rule_denies_a_reset(tmp_path, tracked_worker_factory)
     daemon = Daemon(Settings(cell=CELL, zenoh_config=config), tracked_worker_factory())
     n = len(daemon.worker.snapshot())
     with running(daemon), _session(f"tcp/127.0.0.1:{port}") as session:
-        time.sleep(0.5)
+        # the link is up and the daemon answers this peer's queries (the state query is not
+        # denied): an empty reply to the reset is the rule, not a link still coming up
+        _wait_linked(session)
         assert _reset(session) == []  # denied: the query never reaches the daemon
         assert len(daemon.worker.snapshot()) == n
-        state = [r.ok for r in session.get(f"{CELL}/@v1/estimator/state", timeout=3) if r.ok]
+        assert not any("reset" in e for e in daemon.stats_dict()["events"])
+        state = _state_replies(session)
         assert len(msgpack.unpackb(state[0].payload.to_bytes())["objects"]) == n
