@@ -99,13 +99,8 @@ def _cached_catalog(catalog_dir: str) -> Catalog:
     return _CATALOGS[catalog_dir]
 
 
-def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """One scene's views as (rgb (720, 1280, 3) uint8, instance map (720, 1280) uint8, small
-    rgb (Hs, Ws, 3) uint8, instance rows (K, 10): the columns of ``INSTANCE_COLUMNS`` but the
-    view). The picklable unit of parallel rendering."""
-    catalog_dir, scene_index, views, seed_base, profile, small_scale = args
+def _scene_renderer(catalog_dir: str, scene_index: int, views: int, seed_base: int, profile: str):
     catalog = _cached_catalog(catalog_dir)
-    classes = class_index(catalog)
     seed = scene_seed(seed_base, scene_index)
     spec = dataclasses.replace(PROFILES[profile], n_views=views)
     scene = make_scene(catalog, spec, seed, FULL)
@@ -116,8 +111,46 @@ def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, 
     poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
     ids = list(range(len(scene.instances))) + [BIN_ID]
     renderer = Renderer(meshes, poses, ids, materials + [scene.bin_material])
-    rng = np.random.default_rng(seed + 1)
+    return catalog, scene, renderer, seed
+
+
+def instance_rows(catalog, scene, renderer, T_world_cam: np.ndarray, inst: np.ndarray) -> np.ndarray:
+    """(K, 10) the rows of ``INSTANCE_COLUMNS`` but the view, of one view's visible instances.
+
+    Args:
+        inst: (720, 1280) uint8 instance map of the view (k + 1 for instance k).
+    """
+    classes = class_index(catalog)
     quarter = FULL.scaled(0.25)
+    inst_q = cv2.resize(inst, (quarter.width, quarter.height), interpolation=cv2.INTER_NEAREST)
+    T_cam_world = np.linalg.inv(T_world_cam)
+    rows = []
+    for k, inst_k in enumerate(scene.instances):
+        ys, xs = np.nonzero(inst == k + 1)
+        if len(xs) == 0:
+            continue
+        t_cam = T_cam_world[:3, :3] @ inst_k.T_world_obj[:3, 3] + T_cam_world[:3, 3]
+        if t_cam[2] <= 0:
+            continue
+        u, v = FULL.project(t_cam)
+        full_q = renderer.render_mask(quarter, T_world_cam, k).sum()
+        visib = float(min((inst_q == k + 1).sum() / full_q, 1.0)) if full_q else 0.0
+        rows.append(
+            (k, classes[inst_k.obj_id], u, v, xs.min(), ys.min(), xs.max() + 1, ys.max() + 1,
+             visib, len(xs))
+        )
+    return np.array(rows, np.float64).reshape(-1, 10)
+
+
+def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """One scene's views as (rgb (720, 1280, 3) uint8, instance map (720, 1280) uint8, small
+    rgb (Hs, Ws, 3) uint8, instance rows (K, 10): the columns of ``INSTANCE_COLUMNS`` but the
+    view). The picklable unit of parallel rendering."""
+    catalog_dir, scene_index, views, seed_base, profile, small_scale = args
+    catalog, scene, renderer, seed = _scene_renderer(
+        catalog_dir, scene_index, views, seed_base, profile
+    )
+    rng = np.random.default_rng(seed + 1)
     sw, sh = round(FULL.width * small_scale), round(FULL.height * small_scale)
     out = []
     for T_world_cam in scene.T_world_cams:
@@ -128,24 +161,8 @@ def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, 
         small = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
         ph, pw = -sh % 16, -sw % 16
         small = cv2.copyMakeBorder(small, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-        inst_q = cv2.resize(inst, (quarter.width, quarter.height), interpolation=cv2.INTER_NEAREST)
-        T_cam_world = np.linalg.inv(T_world_cam)
-        rows = []
-        for k, inst_k in enumerate(scene.instances):
-            ys, xs = np.nonzero(inst == k + 1)
-            if len(xs) == 0:
-                continue
-            t_cam = T_cam_world[:3, :3] @ inst_k.T_world_obj[:3, 3] + T_cam_world[:3, 3]
-            if t_cam[2] <= 0:
-                continue
-            u, v = FULL.project(t_cam)
-            full_q = renderer.render_mask(quarter, T_world_cam, k).sum()
-            visib = float(min((inst_q == k + 1).sum() / full_q, 1.0)) if full_q else 0.0
-            rows.append(
-                (k, classes[inst_k.obj_id], u, v, xs.min(), ys.min(), xs.max() + 1,
-                 ys.max() + 1, visib, len(xs))
-            )
-        out.append((rgb, inst, small, np.array(rows, np.float64).reshape(-1, 10)))
+        rows = instance_rows(catalog, scene, renderer, T_world_cam, inst)
+        out.append((rgb, inst, small, rows))
     return out
 
 
@@ -202,38 +219,47 @@ def render_training_set(
     folder.mkdir(parents=True, exist_ok=True)
     n = spec.n_scenes * spec.views
     sw, sh = small_size(spec.small_scale)
-    full_rgb = np.memmap(
-        folder / "full_rgb.u8", np.uint8, "w+", shape=(n, FULL.height, FULL.width, 3)
-    )
-    full_inst = np.memmap(folder / "full_inst.u8", np.uint8, "w+", shape=(n, FULL.height, FULL.width))
-    small_rgb = np.memmap(folder / "small_rgb.u8", np.uint8, "w+", shape=(n, sh, sw, 3))
+
+    def open_map(name, shape):
+        mode = "r+" if (folder / name).is_file() else "w+"
+        return np.memmap(folder / name, np.uint8, mode, shape=shape)
+
+    full_rgb = open_map("full_rgb.u8", (n, FULL.height, FULL.width, 3))
+    full_inst = open_map("full_inst.u8", (n, FULL.height, FULL.width))
+    small_rgb = open_map("small_rgb.u8", (n, sh, sw, 3))
+    # a scene is done when its rows are on disk (written after its views): an interrupted
+    # rendering goes on where it stopped
+    done_dir = folder / "scenes"
+    done_dir.mkdir(exist_ok=True)
+    todo = [k for k in range(spec.n_scenes) if not (done_dir / f"{k:06d}.npy").is_file()]
     jobs = [
         (str(catalog_dir), k, spec.views, spec.seed_base, profile_of(k, spec.robi_fraction),
          spec.small_scale)
-        for k in range(spec.n_scenes)
+        for k in todo
     ]
-    rows = []
-    index = 0
-    pool = get_context("spawn").Pool(workers) if workers > 1 else None
+    pool = get_context("spawn").Pool(workers) if workers > 1 and jobs else None
     try:
         results = pool.imap(render_scene, jobs) if pool else map(render_scene, jobs)
-        with tqdm(total=spec.n_scenes, desc=desc, unit="scene") as bar:
-            for views in results:
-                for rgb, inst, small, inst_rows in views:
+        with tqdm(total=spec.n_scenes, initial=spec.n_scenes - len(todo), desc=desc, unit="scene") as bar:
+            for k, views in zip(todo, results, strict=True):
+                scene_rows = []
+                for j, (rgb, inst, small, inst_rows) in enumerate(views):
+                    index = k * spec.views + j
                     full_rgb[index] = rgb
                     full_inst[index] = inst
                     small_rgb[index] = small
-                    rows.append(
+                    scene_rows.append(
                         np.concatenate([np.full((len(inst_rows), 1), index), inst_rows], 1)
                     )
-                    index += 1
+                for m in (full_rgb, full_inst, small_rgb):
+                    m.flush()
+                np.save(done_dir / f"{k:06d}.npy", np.concatenate(scene_rows, 0))
                 bar.update(1)
     finally:
         if pool:
             pool.close()
             pool.join()
-    for m in (full_rgb, full_inst, small_rgb):
-        m.flush()
+    rows = [np.load(done_dir / f"{k:06d}.npy") for k in range(spec.n_scenes)]
     np.save(folder / "instances.npy", np.concatenate(rows, 0) if rows else np.zeros((0, 11)))
     meta = {
         "n_views": n,
