@@ -62,7 +62,7 @@ class CellSet:
             for d in self.daemons.values():
                 d.stop()
             for t in threads:
-                t.join(timeout=10)
+                t.join(timeout=45)  # a daemon fuses its frame in flight, then saves
 
     def stop(self) -> None:
         self._stop.set()

@@ -1,10 +1,11 @@
 """The estimator daemon on Zenoh: enqueue in callbacks, decode in a small pool, estimate in one
 worker thread.
 
-- The subscriber on ``{cell}/@v1/cam/*/*`` only checks the key and the payload size and hands
-  the bytes to a decoder thread (one per camera, chosen by a stable hash, so a camera's
-  messages stay in order); a full decoder queue drops the message and counts it. Nothing is
-  decoded on the transport's threads.
+- The subscriber on ``{cell}/@v1/cam/*/*`` only checks the key and the payload size and queues
+  the bytes in the camera's lane of :class:`~service.ingest.FairIngest`: bounded per camera and
+  kind, served to the decoder threads in turn, infos and poses before images, so one camera's
+  flood costs another camera nothing; what a full queue drops is counted. Nothing is decoded on
+  the transport's threads.
 - Decoders turn bytes into messages (:mod:`service.codec`; image sizes checked on the stream's
   header before decoding) and give them to the :class:`~service.sync.FrameSynchronizer`. A bad
   message is counted by key and by reason, and logged, never raised.
@@ -20,7 +21,7 @@ worker thread.
   reset needs the token as the query's attachment); a liveliness token ``estimator/alive``
   says the daemon is up.
 - With a ``state_dir``, the tracks are snapshotted every ``state_interval_s`` and at a clean
-  stop, and restored at start (:mod:`service.state`).
+  stop (after the frame in flight is fused), and restored at start (:mod:`service.state`).
 - Several daemons may serve one cell: liveliness tokens elect the one that produces its
   estimates (:mod:`service.election`); the others stand by with nothing subscribed and take
   over from the last snapshot when it disappears. :meth:`Daemon.serve` runs a cell on an open
@@ -34,7 +35,6 @@ import logging
 import queue
 import threading
 import time
-import zlib
 from collections import Counter
 
 import numpy as np
@@ -50,8 +50,9 @@ from service.codec import (
     estimate_to_dict,
     nbv_reply,
 )
+from service.ingest import FairIngest
 from service.keys import Keys
-from service.settings import Settings, sync_config, zenoh_config
+from service.settings import Settings, ingest_config, sync_config, zenoh_config
 from service.sync import FrameSynchronizer
 from service.worker import EstimatorWorker, now_ns
 
@@ -71,11 +72,10 @@ class Daemon:
         self.images_received = 0
         self._per_camera: Counter = Counter()  # (camera id, processed | errors)
         self.events: Counter = Counter()
-        self._queues = [
-            queue.Queue(maxsize=settings.ingest_queue) for _ in range(settings.decode_threads)
-        ]
+        self.ingest_queue = FairIngest(ingest_config(settings), dropped=self.ingest_dropped)
         self._info_asked: dict[str, float] = {}
         self._fused: queue.Queue = queue.Queue(maxsize=1)  # front end -> estimator
+        self._front_done = threading.Event()  # the front end has handed over its last frame
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._listeners: list[queue.Queue] = []
@@ -121,13 +121,9 @@ class Daemon:
         if len(payload) > self.settings.max_payload_bytes:
             self._decode_failed(key, parsed[1], "too_large")
             return False
-        q = self._queues[zlib.crc32(parsed[0].encode()) % len(self._queues)]
-        try:
-            q.put_nowait((key, parsed[0], parsed[1], payload, now_ns()))
-        except queue.Full:
-            self.ingest_dropped[f"{parsed[1]}_ingest_full"] += 1
-            return False
-        return True
+        cam_id, kind = parsed
+        item = (key, kind, payload, now_ns())
+        return self.ingest_queue.put(cam_id, kind, item, len(payload))
 
     def on_ros2_sample(self, sample) -> None:
         """Subscriber callback of the ROS 2 camera topics: check, enqueue; never decode here."""
@@ -150,37 +146,34 @@ class Daemon:
         if len(payload) > self.settings.max_payload_bytes:
             self._decode_failed(key, kind, "too_large")
             return False
-        q = self._queues[zlib.crc32(cam_id.encode()) % len(self._queues)]
-        try:
-            q.put_nowait((key, cam_id, f"{kind}:{msgtype}", payload, now_ns()))
-        except queue.Full:
-            self.ingest_dropped[f"{kind}_ingest_full"] += 1
-            return False
-        return True
+        item = (key, f"{kind}:{msgtype}", payload, now_ns())
+        return self.ingest_queue.put(cam_id, kind, item, len(payload))
 
     def _decode_failed(self, key: str, kind: str, code: str) -> None:
         self.stats.count(self.stats.decode_errors, key)
         self.stats.count(self.stats.decode_reasons, f"{kind}_{code}")
 
-    def _decode_loop(self, q: queue.Queue) -> None:
+    def _decode_loop(self) -> None:
         while not self._stop.is_set():
-            try:
-                item = q.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            self._handle(*item)
+            got = self.ingest_queue.get(timeout=0.2)
+            if got is not None:
+                self._decode_one(got)
+
+    def _decode_one(self, got) -> None:
+        """Decode one message the ingest queue served; its lane is charged the CPU time."""
+        cam_id, _, (key, kind, payload, arrival) = got
+        t0 = time.thread_time()
+        try:
+            self._handle(key, cam_id, kind, payload, arrival)
+        finally:
+            self.ingest_queue.done(cam_id, time.thread_time() - t0)
 
     def drain(self) -> int:
         """Decode every queued message in this thread (tests and tools without :meth:`run`)."""
         n = 0
-        for q in self._queues:
-            while True:
-                try:
-                    item = q.get_nowait()
-                except queue.Empty:
-                    break
-                self._handle(*item)
-                n += 1
+        while (got := self.ingest_queue.get_nowait()) is not None:
+            self._decode_one(got)
+            n += 1
         return n
 
     def _handle(self, key: str, cam_id: str, kind: str, payload: bytes, arrival: int) -> None:
@@ -306,31 +299,38 @@ class Daemon:
 
     # ------------------------------------------------------------------ worker
     def _front_end(self) -> None:
-        """Stage 1: synchronised frames through the network; hands them to the estimator."""
-        while not self._stop.is_set():
-            frame = self.sync.pop(now_ns())
-            if frame is None:
-                self._wake.wait(0.01)
-                self._wake.clear()
-                continue
-            try:
-                detections = self.worker.detections(frame)
-            except Exception:
-                self._failed(frame)
-                continue
+        """Stage 1: synchronised frames through the network; hands them to the estimator. At
+        stop, the frame in the network is still handed over (the estimator fuses it)."""
+        try:
             while not self._stop.is_set():
-                try:
-                    self._fused.put((frame, detections), timeout=0.2)
-                    break
-                except queue.Full:
+                frame = self.sync.pop(now_ns())
+                if frame is None:
+                    self._wake.wait(0.01)
+                    self._wake.clear()
                     continue
+                try:
+                    detections = self.worker.detections(frame)
+                except Exception:
+                    self._failed(frame)
+                    continue
+                while True:  # the estimator drains this queue until the front end is done
+                    try:
+                        self._fused.put((frame, detections), timeout=0.2)
+                        break
+                    except queue.Full:
+                        continue
+        finally:
+            self._front_done.set()
 
     def _work(self, session) -> None:
-        """Stage 2: the estimator's update, then publish."""
-        while not self._stop.is_set():
+        """Stage 2: the estimator's update, then publish. At stop, the frames the front end
+        still hands over are fused before the thread ends (then the snapshot is written)."""
+        while not (self._stop.is_set() and self._front_done.is_set() and self._fused.empty()):
             try:
                 frame, detections = self._fused.get(timeout=0.2)
             except queue.Empty:
+                if self._stop.is_set() and not self._front_alive():
+                    break  # a front end that never started (tests) has nothing to hand over
                 continue
             try:
                 updated = self.worker.fuse(frame, detections)
@@ -339,13 +339,25 @@ class Daemon:
                 continue
             self._publish(session, frame, updated)
 
+    def _front_alive(self) -> bool:
+        return any(t.name == "posefuse-front" and t.is_alive() for t in self._threads)
+
     def _failed(self, frame) -> None:
         self.stats.errors += 1
-        self._per_camera[(frame.camera_id, "errors")] += 1
+        self._count_frame(frame.camera_id, "errors")
         log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
 
+    def _count_frame(self, camera_id: str, what: str) -> None:
+        """Per-camera processed / errors; cameras the synchroniser forgot leave the table once
+        it holds far more than max_cameras (their counts are in the totals)."""
+        self._per_camera[(camera_id, what)] += 1
+        if len(self._per_camera) > 8 * self.settings.max_cameras:
+            known = set(self.sync.cameras())
+            for k in [k for k in self._per_camera if k[0] not in known]:
+                del self._per_camera[k]
+
     def _publish(self, session, frame, updated) -> None:
-        self._per_camera[(frame.camera_id, "processed")] += 1
+        self._count_frame(frame.camera_id, "processed")
         if frame.arrival_ns:
             self.stats.latencies_ms.append((now_ns() - frame.arrival_ns) / 1e6)
         for e in updated:
@@ -509,8 +521,8 @@ class Daemon:
         cell's inputs are subscribed by :meth:`activate`."""
         self.session = session
         self._threads = [
-            threading.Thread(target=self._decode_loop, args=(q,), daemon=True, name=f"decode-{i}")
-            for i, q in enumerate(self._queues)
+            threading.Thread(target=self._decode_loop, daemon=True, name=f"decode-{i}")
+            for i in range(self.settings.decode_threads)
         ]
         self._threads += [
             threading.Thread(target=self._front_end, daemon=True, name="posefuse-front"),
@@ -567,12 +579,14 @@ class Daemon:
             self.events["deactivations"] += 1
             self.worker.reset()
 
-    def close(self) -> None:
-        """Stop the threads, write the last snapshot if this daemon is the producer."""
+    def close(self, timeout: float = 30.0) -> None:
+        """Stop the threads (the frame in flight is fused first), then write the last snapshot
+        if this daemon is the producer. ``timeout``: seconds for all threads together."""
         self._stop.set()
         self._wake.set()
+        deadline = time.monotonic() + timeout
         for t in self._threads:
-            t.join(timeout=5)
+            t.join(timeout=max(0.1, deadline - time.monotonic()))
         with self._role_lock:
             if self.active:
                 self.save_state()
@@ -620,7 +634,8 @@ class Daemon:
             "frames_dropped": dict(sorted(dropped.items())),
             "frames_pending": self.sync.pending() + self._fused.qsize(),
             "queued_bytes": self.sync.queued_bytes(),
-            "ingest_pending": sum(q.qsize() for q in self._queues),
+            "ingest_pending": self.ingest_queue.pending(),
+            "ingest_pending_bytes": self.ingest_queue.pending_bytes(),
             "received": dict(s.received),
             "decode_errors": dict(s.decode_errors),
             "decode_errors_by_reason": dict(s.decode_reasons),

@@ -72,11 +72,17 @@ class Settings(BaseSettings):
     max_payload_bytes: int = 16 * 1024 * 1024
     max_image_pixels: int = 4096 * 4096  # checked on the declared and the header size
     decode_threads: int = 2  # images are decoded off the transport's threads
-    ingest_queue: int = 16  # messages waiting for a decoder, per decoder thread
+    # messages waiting for a decoder (service/ingest.py): per camera and kind, served in turn
+    ingest_images: int = 4  # images waiting per camera (the oldest dropped)
+    ingest_small: int = 1024  # infos, and poses, waiting per camera (the oldest dropped)
+    ingest_bytes: int = 256 * 1024 * 1024  # payloads waiting, all cameras together
     image_queue: int = 2  # frames buffered per camera: the latest win when behind
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
-    max_cameras: int = 16
+    max_cameras: int = 16  # at the limit, a camera that never completed a frame yields
     camera_timeout_s: float = 60.0  # a silent camera is forgotten after this
+    max_future_s: float = Field(
+        10.0, gt=0, description="frames and poses stamped further ahead of the clock are refused"
+    )
     pose_buffer: int = 200  # camera poses kept per camera for interpolation
     max_pose_gap_ns: int = 200_000_000  # poses further apart than this are not interpolated
     wait_ms: float = 500.0  # how long an image waits for its camera info and a later pose
@@ -144,6 +150,18 @@ def sync_config(settings: Settings):
         camera_timeout_ns=int(settings.camera_timeout_s * 1e9),
         max_cameras=settings.max_cameras,
         max_queued_bytes=settings.max_queued_bytes,
+        max_future_ns=int(settings.max_future_s * 1e9),
+    )
+
+
+def ingest_config(settings: Settings):
+    """The FairIngest configuration of these settings."""
+    from service.ingest import IngestConfig
+
+    return IngestConfig(
+        images_per_camera=settings.ingest_images,
+        small_per_camera=settings.ingest_small,
+        max_bytes=settings.ingest_bytes,
     )
 
 
