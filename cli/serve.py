@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import time
 
 from cli.common import (
@@ -70,17 +71,51 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         f"HTTP on http://{settings.http_host}:{settings.http_port} (/objects, /stats, /docs)",
         flush=True,
     )
-    try:
-        uvicorn.run(
+    server = _server(
+        uvicorn.Config(
             create_cells_app(cells),
             host=settings.http_host,
             port=settings.http_port,
             log_level="warning",
+            timeout_graceful_shutdown=5,  # an open /events stream must not hold the stop
         )
+    )
+    try:
+        server.run()
     finally:
-        cells.stop()
-        thread.join(timeout=15)
+        _stop_cells(cells, thread)
+    if server.stop_signal is not None:
+        print(f"posefuse: stopped by {signal.Signals(server.stop_signal).name}", flush=True)
     return 0
+
+
+def _server(config):
+    """uvicorn's server, except that a SIGTERM or SIGINT only stops it: uvicorn re-raises the
+    signal once it has stopped, which kills the process before the daemon has fused its frame
+    in flight and written its snapshot. The caller stops the cells, then returns 0."""
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        stop_signal: int | None = None
+
+        def handle_exit(self, sig, frame) -> None:
+            if self.should_exit and sig == signal.SIGINT:
+                self.force_exit = True  # a second Ctrl-C: stop serving open requests now
+            self.stop_signal = sig
+            self.should_exit = True
+
+    return Server(config)
+
+
+def _stop_cells(cells, thread) -> None:
+    """Stop every cell: each fuses the frame in flight and writes its snapshot. A SIGTERM in the
+    meantime is ignored (a supervisor repeating it would otherwise kill the snapshot)."""
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        cells.stop()
+        thread.join(timeout=60)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def limit_malloc_arenas(arenas: int = 2) -> None:
