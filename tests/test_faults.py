@@ -1,5 +1,6 @@
 """Faults as a hostile or unlucky network makes them, against ``posefuse serve`` in its own
-process on loopback: a camera without info, a pose that never comes, stamps in the far future,
+process on loopback: a camera without info, a pose that never comes, stamps in the far future
+(refused on arrival),
 clock steps of an hour either way, a second publisher run, a camera that goes silent,
 decompression bombs, huge valid frames from many camera ids. After each fault, good frames are
 processed, the counters say what happened, and the daemon's RSS stays under RSS_BOUND_MB.
@@ -94,6 +95,19 @@ def test_stamp_faults_are_counted_and_recovered_from(served, fault):
     stats = daemon.stats()
     if fault == "clock_plus_1h":
         assert _processed(daemon, cam.cam_id) >= 3 + 6  # a jump forward needs nothing
+    elif fault == "far_future_stamp":  # refused on arrival: the camera's clock is not dragged
+        wait_until(lambda: _processed(daemon, cam.cam_id) == 3 + 6, 60, what="all 6 after")
+        stats = daemon.stats()
+        future = stats["frames_dropped"]["future_stamp"]
+        assert future - before["frames_dropped"].get("future_stamp", 0) == 1
+        assert (
+            stats["sync_events"]["future_pose"] - before["sync_events"].get("future_pose", 0) == 1
+        )
+        assert stats["sync_events"].get("reanchored", 0) == before["sync_events"].get(
+            "reanchored", 0
+        )
+        now = time.time_ns()
+        assert all(o["stamp_ns"] <= now for o in daemon.objects())  # none from the future
     else:
         reanchored = stats["sync_events"]["reanchored"] - before["sync_events"].get("reanchored", 0)
         assert reanchored == 1
