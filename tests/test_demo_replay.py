@@ -17,6 +17,86 @@ from service.settings import Settings
 from service.worker import EstimatorWorker, make_detector
 
 EXPECTED = Path(DEFAULT_RECORDING).with_suffix(".expected.json")
+# the shipped model the expected file was made with (sha256 of models/robi_like.onnx): another
+# model gives other estimates; its replay is still held to the ground-truth floor below
+EXPECTED_MODEL_SHA256 = "5ec97d78c181ed05e71cb4e7d1e3a09a354bd8ecc33c262cf24509253876f4d9"
+# share of confirmed estimates within ADD-sym 0.1 d of a true part: 21 of 31 in the expected
+# file; a replay below half of its confirmed estimates right is broken
+FLOOR = 0.5
+MIN_CORRECT = 12
+
+
+def _truth() -> list[list[tuple[int, np.ndarray]]]:
+    """Each segment's true parts (obj_id, T_world_obj), from the recording's own ground truth:
+    a segment ends at each reset, as the replay's do."""
+    from service.codec import decode_groundtruth
+
+    segments, current = [], None
+    for m in read_messages(DEFAULT_RECORDING):
+        if "/groundtruth/" in m.key:
+            current = decode_groundtruth(m.payload)
+        elif m.key.endswith("/estimator/reset") and current is not None:
+            segments.append(current)
+            current = None
+    if current is not None:
+        segments.append(current)
+    return segments
+
+
+def _score(segments: list[list[dict]]) -> tuple[int, int, float]:
+    """(correct, confirmed): ADD-sym (the function
+    checked against bop_toolkit) of each confirmed estimate to the closest unmatched true part of
+    its class, greedy by confidence, one-to-one."""
+    from scipy.spatial.transform import Rotation
+
+    from estimator import pose_error
+
+    catalog = load_catalog(DEFAULT_CATALOG)
+    truth = _truth()
+    assert len(truth) == len(segments) == 3
+    correct = confirmed = 0
+    for estimates, parts in zip(segments, truth, strict=True):
+        free = set(range(len(parts)))
+        for e in sorted(estimates, key=lambda e: -e["confidence"]):
+            if e["status"] != "confirmed":
+                continue
+            confirmed += 1
+            model = catalog[e["class_id"]]
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_quat(e["q"]).as_matrix()
+            T[:3, 3] = e["t"]
+            errors = {
+                k: pose_error.add_sym(T, parts[k][1], model.eval_points, model.eval_symmetries)
+                for k in free
+                if parts[k][0] == e["class_id"]
+            }
+            if errors and min(errors.values()) < 0.1 * model.diameter:
+                correct += 1
+                free.discard(min(errors, key=errors.get))
+    return correct, confirmed
+
+
+def _assert_above_the_floor(segments):
+    correct, confirmed = _score(segments)
+    assert correct >= MIN_CORRECT and correct >= FLOOR * confirmed, (correct, confirmed)
+
+
+def test_the_expected_file_is_right_against_the_recordings_truth():
+    _assert_above_the_floor(json.loads(EXPECTED.read_text())["segments"])
+
+
+def test_random_rotations_fall_below_the_floor():
+    """The floor means something: the expected estimates with random rotations fail it."""
+    from scipy.spatial.transform import Rotation
+
+    segments = json.loads(EXPECTED.read_text())["segments"]
+    rng = np.random.default_rng(0)
+    broken = [
+        [{**e, "q": list(Rotation.random(random_state=rng).as_quat())} for e in seg]
+        for seg in segments
+    ]
+    with pytest.raises(AssertionError):
+        _assert_above_the_floor(broken)
 
 
 def _replay(default_banks, mcap_out=None):
@@ -33,6 +113,10 @@ def _replay(default_banks, mcap_out=None):
 
 
 def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_banks, tmp_path):
+    """Byte-identical replays here, right against the recording's truth; equal to the expected
+    file (1e-6) when the shipped model is the one it was made with."""
+    import hashlib
+
     outputs, recordings = [], []
     for k in range(3):
         result = _replay(default_banks, tmp_path / f"r{k}.mcap")
@@ -42,6 +126,13 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
     assert outputs[0] == outputs[1] == outputs[2]
     assert recordings[0] == recordings[1] == recordings[2]
     got = json.loads(outputs[0])
+    _assert_above_the_floor(got["segments"])
+    shipped = hashlib.sha256(Path(DEFAULT_MODEL).read_bytes()).hexdigest()
+    if shipped != EXPECTED_MODEL_SHA256:
+        pytest.skip(
+            f"{EXPECTED} was made with another model than {DEFAULT_MODEL}: regenerate it with "
+            "`posefuse replay recordings/demo.mcap --offline --out DIR` (the replay met the floor)"
+        )
     expected = json.loads(EXPECTED.read_text())
     assert len(got["updates"]) == len(expected["updates"])
     assert len(got["segments"]) == len(expected["segments"])
@@ -92,12 +183,17 @@ def test_live_lockstep_replay_over_zenoh_equals_offline(default_banks, capsys):
     )
     segments = run_demo(DEFAULT_RECORDING, settings, show_progress=False)
     out = capsys.readouterr().out
-    assert "confirmed estimates within ADD-sym 0.1 d of a true part" in out
-    expected = json.loads(EXPECTED.read_text())["segments"]
-    assert len(segments) == len(expected)
-    for (_, live), offline in zip(segments, expected, strict=True):
-        assert [o["object_id"] for o in live] == [o["object_id"] for o in offline]
-        for a, b in zip(live, offline, strict=True):
+    live_segments = [live for _, live in segments]
+    correct, confirmed = _score(live_segments)
+    # what it prints is what it got, and what it got is right against the truth
+    assert f"{correct} of {confirmed} confirmed estimates within ADD-sym 0.1 d" in out, out[-500:]
+    _assert_above_the_floor(live_segments)
+    # the same estimates as the offline replay on this machine, to a physical tolerance
+    offline = _replay(default_banks).segments
+    assert len(live_segments) == len(offline)
+    for live, off in zip(live_segments, offline, strict=True):
+        assert [o["object_id"] for o in live] == [o["object_id"] for o in off]
+        for a, b in zip(live, off, strict=True):
             assert a["status"] == b["status"] and a["n_views"] == b["n_views"]
-            np.testing.assert_allclose(a["t"], b["t"], atol=1e-9)
-            np.testing.assert_allclose(a["q"], b["q"], atol=1e-9)
+            np.testing.assert_allclose(a["t"], b["t"], atol=1e-6)
+            np.testing.assert_allclose(a["q"], b["q"], atol=1e-6)
