@@ -43,15 +43,19 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         held_views=args.held_views,
         workers=args.workers,
         seed=args.seed,
+        steps=args.steps,
+        train_scenes=args.train_scenes,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
     print()
     print(parts_table(manifest))
-    print(
-        f"stages (s): {manifest['stage_seconds']}; {manifest['total_minutes']} min of a "
-        f"{manifest['budget_minutes']:g} min budget"
+    budget = (
+        f"{manifest['training_steps']} training steps"
+        if manifest["budget_minutes"] is None
+        else f"a {manifest['budget_minutes']:g} min budget"
     )
+    print(f"stages (s): {manifest['stage_seconds']}; {manifest['total_minutes']} min for {budget}")
     print(f"wrote {args.out}/parts.json; look at {args.out}/contact/*.png to confirm symmetries")
     print(f"next: posefuse demo --parts {args.out}   (its held-out mixed bins, scored)")
     print(f"      posefuse serve --parts {args.out}")
@@ -101,6 +105,19 @@ def register(subparsers) -> None:
         metavar="NAME=SPEC",
         help="override a part's detected symmetry: none, continuous[:AXIS] or N[:AXIS] "
         "(AXIS x, y, z or main); repeat per part (default: detected)",
+    )
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="train a fixed number of steps on --train-scenes scenes instead of until the "
+        "budget's deadline: the same front end on any machine (--minutes is then unused)",
+    )
+    p.add_argument(
+        "--train-scenes",
+        type=int,
+        default=24,
+        help="training scenes rendered with --steps (default: 24)",
     )
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(

@@ -6,8 +6,9 @@ Stages, each timed and written to ``DIR/parts.json``:
    groups or taken from the person's ``--symmetry NAME=SPEC``, a BOP catalog in ``DIR/catalog``
    and a contact sheet per part in ``DIR/contact/NAME.png`` (flagged near-symmetries in red);
 2. templates: the LINE-2D banks, built in parallel into the template cache;
-3. front end: training scenes rendered and the network trained until the budget's deadline
-   (``DIR/model/parts.onnx`` and its card);
+3. front end: training scenes rendered and the network trained until the budget's deadline, or
+   for a fixed number of steps on a fixed number of scenes with ``steps`` (the same network on
+   any machine, however fast) (``DIR/model/parts.onnx`` and its card);
 4. validation: held-out renders of both profiles (seeds never used for training), the front
    end's recall and precision, and ADD-sym after 4 and 8 views with the network's detections.
 
@@ -46,12 +47,16 @@ class OnboardConfig:
     workers: int = 2
     seed: int = 0
     robi_fraction: float = 0.5
+    # a fixed amount of training instead of the budget: ``steps`` optimiser steps on
+    # ``train_scenes`` rendered scenes, whatever the machine's speed (``minutes`` is then unused)
+    steps: int | None = None
+    train_scenes: int = 24
 
 
 class Stages:
     """Prints one line per stage with the elapsed time and the budget's end."""
 
-    def __init__(self, budget_s: float, echo=print):
+    def __init__(self, budget_s: float | None, echo=print):
         self.start = time.time()
         self.budget_s = budget_s
         self.seconds: dict[str, float] = {}
@@ -61,19 +66,21 @@ class Stages:
     def begin(self, k: int, name: str, detail: str = "") -> None:
         self._t = time.time()
         elapsed = self._t - self.start
-        left = self.budget_s - elapsed
-        self._echo(
-            f"[{k}/4] {name}{': ' + detail if detail else ''}  "
-            f"(elapsed {elapsed / 60:.1f} min, {left / 60:.1f} min of the budget left)"
+        left = (
+            f", {(self.budget_s - elapsed) / 60:.1f} min of the budget left"
+            if self.budget_s is not None
+            else ""
         )
+        head = f"[{k}/4] {name}{': ' + detail if detail else ''}"
+        self._echo(f"{head}  (elapsed {elapsed / 60:.1f} min{left})")
 
     def end(self, name: str) -> float:
         self.seconds[name] = round(time.time() - self._t, 1)
         return self.seconds[name]
 
     @property
-    def deadline(self) -> float:
-        return self.start + self.budget_s
+    def deadline(self) -> float | None:
+        return None if self.budget_s is None else self.start + self.budget_s
 
 
 def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Catalog, dict]:
@@ -138,10 +145,16 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
     if not paths:
         raise PosefuseError("onboard: give at least one mesh file")
-    if config.minutes <= 0:
+    if config.steps is not None:
+        if config.steps <= 0 or config.train_scenes < 2:
+            raise PosefuseError(
+                f"--steps must be positive and --train-scenes at least 2, got {config.steps} "
+                f"and {config.train_scenes}"
+            )
+    elif config.minutes <= 0:
         raise PosefuseError(f"--minutes must be positive, got {config.minutes}")
     out = Path(out)
-    stages = Stages(config.minutes * 60, echo)
+    stages = Stages(None if config.steps is not None else config.minutes * 60, echo)
 
     stages.begin(1, "catalog", f"{len(paths)} mesh(es) in {config.units}")
     catalog, reports = read_parts(paths, config, echo)
@@ -161,7 +174,13 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
     build_template_banks([catalog[k] for k in catalog], workers=config.workers)
     stages.end("templates")
 
-    stages.begin(3, "front end", "render training scenes, train until the deadline")
+    stages.begin(
+        3,
+        "front end",
+        "render training scenes, train until the deadline"
+        if config.steps is None
+        else f"render {config.train_scenes} training scenes, train {config.steps} steps",
+    )
     model_path = out / "model" / "parts.onnx"
     card = _train(out / "catalog", model_path, catalog, config, stages)
     stages.end("front end")
@@ -189,7 +208,8 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
         "training": card.get("training", {}),
         "validation": validation,
         "stage_seconds": stages.seconds,
-        "budget_minutes": config.minutes,
+        "budget_minutes": None if config.steps is not None else config.minutes,
+        "training_steps": config.steps,
         "total_minutes": round((time.time() - stages.start) / 60, 2),
     }
     (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
@@ -197,11 +217,30 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
 
 def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:
-    from sim.train import TRAIN_SEED_BASE, TrainConfig, profile_of, render_views, train
+    from sim.train import TrainConfig, train
+
+    if config.steps is not None:  # a fixed amount of work: no clock decides anything
+        return train(
+            catalog_dir,
+            model_path,
+            TrainConfig(
+                n_scenes=config.train_scenes,
+                views_per_scene=config.views,
+                val_scenes=config.val_scenes,
+                minutes=1e6,  # never the limit: max_iterations is
+                max_iterations=config.steps,
+                warmup=max(config.steps // 10, 1),
+                workers=config.workers,
+                seed=config.seed,
+                robi_fraction=config.robi_fraction,
+                deadline=None,
+            ),
+        )
+    from sim.train import TRAIN_SEED_BASE, profile_of, render_scene
 
     # A pilot scene tells how long a view takes to render here (both profiles alternate).
     t0 = time.time()
-    render_views((str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, profile_of(1, 1.0)))
+    render_scene((str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, profile_of(1, 1.0), 0.5))
     per_view = (time.time() - t0) / 2 / max(config.workers, 1)
     left = stages.deadline - time.time()
     # validation: its renders, the network on them and the tracker, measured as ~3 s a view
