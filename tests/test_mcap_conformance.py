@@ -5,6 +5,7 @@ installed on first use."""
 
 import json
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import wait_until
 
 from estimator.objects import load_catalog
 from estimator.tracker import MultiViewEstimator, ObjectEstimate
@@ -157,21 +159,25 @@ def test_record_command_writes_raw_and_foxglove_channels(mcap_check, tmp_path):
     port = _free_port()
     out = tmp_path / "cell.mcap"
     command = [sys.executable, "-m", "cli", "record", "--out", str(out)]
-    command += ["--listen", f"tcp/127.0.0.1:{port}", "--duration", "5"]
+    command += ["--listen", f"tcp/127.0.0.1:{port}"]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     keys = Keys("posefuse")
     try:
         assert "recording" in proc.stdout.readline()
         conf = zenoh_config(Settings(listen=[], mode="peer", connect=[f"tcp/127.0.0.1:{port}"]))
         with zenoh.open(conf) as session:
-            time.sleep(1.0)
+            # until the recorder's subscription is known here: a put before it would be lost
+            probe = session.declare_publisher(keys.camera("cam0", "pose"))
+            wait_until(lambda: probe.matching_status.matching, 30, what="the recorder")
+            probe.undeclare()
             T = np.eye(4)
             T[:3, 3] = [0.1, 0.2, 0.8]
             for k in range(3):
                 session.put(keys.camera("cam0", "pose"), encode_camera_pose(10**9 + k, "cam0", T))
             session.put(keys.object("a1"), _estimate_payload("a1"))
             session.put(keys.camera("cam0", "pose"), b"\x00garbage")
-            time.sleep(1.0)
+            time.sleep(1.0)  # delivery of the last puts (the recorder counts nothing we could see)
+        proc.send_signal(signal.SIGTERM)  # stops as Ctrl-C: the file is finished
         assert proc.wait(timeout=30) == 0, proc.stdout.read()
     finally:
         proc.kill()

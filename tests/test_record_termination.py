@@ -10,7 +10,7 @@ import sys
 import time
 
 import numpy as np
-from loopback import free_port, zenoh_peer
+from loopback import free_port, wait_until, zenoh_peer
 
 from service.codec import encode_camera_pose, encode_image
 from service.keys import Keys
@@ -19,10 +19,19 @@ from service.recording import read_messages
 KEYS = Keys("posefuse")
 
 
+def _wait_for_subscriber(session, key: str) -> None:
+    publisher = session.declare_publisher(key)
+    try:
+        wait_until(lambda: publisher.matching_status.matching, 30, what=f"a subscriber of {key}")
+    finally:
+        publisher.undeclare()
+
+
 def _publish(endpoint: str, n_images: int, size: int = 200) -> None:
     rng = np.random.default_rng(0)
     with zenoh_peer(endpoint) as session:
-        time.sleep(1.0)
+        # until the recorder's subscription is known here: a put before it would be lost
+        _wait_for_subscriber(session, KEYS.camera("cam0", "image"))
         for k in range(n_images):
             image = rng.integers(0, 255, (size, size, 3), np.uint8)
             session.put(
