@@ -73,7 +73,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--out", required=True, help="NAME.onnx to write (its model card NAME.json beside)"
     )
-    p.add_argument("--scenes", type=int, default=300, help="training scenes to render")
+    p.add_argument("--scenes", type=int, default=200, help="training scenes to render")
     p.add_argument("--views", type=int, default=4, help="views per training scene")
     p.add_argument(
         "--val-scenes", type=int, default=8, help="calibration scenes to render (held out)"

@@ -31,6 +31,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from scipy.optimize import linear_sum_assignment
+
+from estimator.dataset import load_dataset
+from estimator.frontend.metrics import score_frontend
 from estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
 from estimator.objects import load_catalog
 from sim.scenes import REALSENSE_1280x720
@@ -54,7 +58,7 @@ __all__ = ["TRAIN_SEED_BASE", "TrainConfig", "profile_of", "render_scene", "trai
 
 @dataclass(frozen=True)
 class TrainConfig:
-    n_scenes: int = 300
+    n_scenes: int = 200
     views_per_scene: int = 4
     val_scenes: int = 8
     minutes: float = 40.0  # this run's wall-clock budget
@@ -267,9 +271,6 @@ def _card(catalog, config: TrainConfig, model_path: Path, cov_scale: float, extr
 def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> dict:
     """Recall, precision, median center error and mean NEES of the exported model on each
     tuning dataset (all views), with the front end's own code."""
-    from estimator.dataset import load_dataset
-    from estimator.frontend.metrics import score_frontend
-
     out = {}
     for root in datasets:
         ds = load_dataset(root)
@@ -293,11 +294,7 @@ def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> 
 def calibrate(model_path: Path, val: TrainingSet, seed: int = 0) -> tuple[float, dict]:
     """The covariance scale that makes the mean NEES of matched centers 2 on held-out renders
     (the model's card read with scale 1), and validation figures."""
-    from scipy.optimize import linear_sum_assignment
-
-    from estimator.objects import load_catalog as _load
-
-    catalog = _load(val.meta["catalog"])
+    catalog = load_catalog(val.meta["catalog"])
     card_path = model_path.with_suffix(".json")
     data = json.loads(card_path.read_text())
     data["voting_cov_scale"] = 1.0
