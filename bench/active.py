@@ -1,7 +1,7 @@
 """Next-best-view against random order and the fixed sweep, in closed loop on synthetic bins.
 
-    python -m bench.active [--scenes 10] [--out docs/benchmarks.md]
-    python -m bench.active --speed          # the cost of scoring 100 candidates x 30 tracks
+    python -m posefuse.bench.active [--scenes 10] [--out docs/benchmarks.md]
+    python -m posefuse.bench.active --speed      # the cost of scoring 100 candidates x 30 tracks
 
 For each held-out scene of each profile (mixed: ``scene_seed(6300, k)``, robi:
 ``scene_seed(6400, k)``; never used for tuning, see docs/benchmarks.md) the candidates are the
@@ -29,13 +29,13 @@ MARK_END = "<!-- bench.active: end -->"
 
 
 def run(profiles, n_scenes: int, budget: int, progress: bool = True) -> dict:
-    from estimator.frontend.network import NetworkFrontend
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
-    from sim.active import POLICIES, ActiveConfig, RenderedScene, run_policy, score_steps
-    from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
-    from sim.synth import scene_seed
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+    from posefuse.sim.active import POLICIES, ActiveConfig, RenderedScene, run_policy, score_steps
+    from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
+    from posefuse.sim.synth import scene_seed
 
     catalog = load_catalog(DEFAULT_CATALOG)
     network = NetworkFrontend(DEFAULT_MODEL, catalog)
@@ -90,7 +90,7 @@ def views_to_reach(rates: list[float], target: float) -> int | None:
 
 
 def markdown(results: dict, meta: dict, budget: int) -> str:
-    from sim.active import POLICIES
+    from posefuse.sim.active import POLICIES
 
     lines = [
         MARK_BEGIN,
@@ -161,25 +161,25 @@ def write_section(path: Path, section: str) -> None:
 
 
 def _machine() -> str:
-    from bench.paper_tables import _machine as machine
+    from posefuse.bench.paper_tables import _machine as machine
 
     return machine()
 
 
 def speed(repeats: int = 20) -> dict:
     """Median seconds to score 100 candidates for 30 tracks with 3 rotation components each."""
-    from estimator.geometry import random_rotations
-    from estimator.nbv import (
+    from posefuse.estimator.geometry import random_rotations
+    from posefuse.estimator.nbv import (
         BinRegion,
         NbvTrack,
         appearance_index,
         default_candidates,
         score_candidates,
     )
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from service.resources import DEFAULT_CATALOG
-    from sim.scenes import REALSENSE_1280x720
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.service.resources import DEFAULT_CATALOG
+    from posefuse.sim.scenes import REALSENSE_1280x720
 
     catalog = load_catalog(DEFAULT_CATALOG)
     est = MultiViewEstimator(catalog)
@@ -224,15 +224,15 @@ def picture(path: Path, profile: str = "robi", scene_id: int = 0, views: int = 2
     squares, the chosen next view ringed in red, the tracks' centres as crosses."""
     import cv2
 
-    from estimator.camera import Camera
-    from estimator.frontend.network import NetworkFrontend
-    from estimator.nbv import appearance_index, look_at, score_candidates, tracks_for_nbv
-    from estimator.objects import load_catalog
-    from estimator.tracker import Frame, MultiViewEstimator
-    from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
-    from sim.active import ActiveConfig, RenderedScene
-    from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
-    from sim.synth import scene_seed
+    from posefuse.estimator.camera import Camera
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.nbv import appearance_index, look_at, score_candidates, tracks_for_nbv
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+    from posefuse.sim.active import ActiveConfig, RenderedScene
+    from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
+    from posefuse.sim.synth import scene_seed
 
     catalog = load_catalog(DEFAULT_CATALOG)
     network = NetworkFrontend(DEFAULT_MODEL, catalog)
@@ -320,7 +320,7 @@ def picture(path: Path, profile: str = "robi", scene_id: int = 0, views: int = 2
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     p = argparse.ArgumentParser(
-        prog="python -m bench.active",
+        prog="python -m posefuse.bench.active",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -361,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     results = run(args.profiles, args.scenes, args.budget)
     meta = {
-        "command": "python -m bench.active " + " ".join(shlex.quote(a) for a in argv),
+        "command": "python -m posefuse.bench.active " + " ".join(shlex.quote(a) for a in argv),
         "minutes": (time.perf_counter() - start) / 60,
         "machine": _machine(),
     }

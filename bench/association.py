@@ -1,6 +1,6 @@
 """Association and translation of the tracker on a front end's detections, without rotations.
 
-python -m bench.association --dataset DIR [--frontend network|oracle] [--model M.onnx]
+python -m posefuse.bench.association --dataset DIR [--frontend network|oracle] [--model M.onnx]
                             [--cache FILE.pkl]
 
 Runs the front end once over the dataset (its labelled detections, masks dropped, can be kept
@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.dataset import load_dataset
-from estimator.frontend.oracle import OracleConfig, OracleFrontend
-from estimator.run_dataset import LabelledNetworkFrontend, run_dataset, summary_markdown
-from estimator.tracker import TrackerConfig
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+from posefuse.estimator.run_dataset import LabelledNetworkFrontend, run_dataset, summary_markdown
+from posefuse.estimator.tracker import TrackerConfig
 
 
 class CachedFrontend:
@@ -59,7 +59,7 @@ def with_setting(config, path: list[str], value: float):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.resources import DEFAULT_MODEL
+    from posefuse.service.resources import DEFAULT_MODEL
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", required=True)
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         config = with_setting(config, key.split("."), float(value))
     ds = load_dataset(args.dataset)
     if args.frontend == "network":
-        from estimator.frontend.network import NetworkFrontend
+        from posefuse.estimator.frontend.network import NetworkFrontend
 
         inner = LabelledNetworkFrontend(ds, NetworkFrontend(args.model, ds.catalog))
     else:

@@ -9,7 +9,7 @@ import zlib
 import cv2
 import numpy as np
 
-from service.codec import _pack
+from posefuse.service.codec import _pack
 
 
 def png_bomb(width: int = 20000, height: int = 20000) -> bytes:

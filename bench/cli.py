@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from cli.common import add_command
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+from posefuse.cli.common import add_command
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 # Relative to the current folder; the committed pages are regenerated with an explicit
 # --out docs/benchmarks.md (or docs/benchmarks_network.md with --frontend network).
@@ -14,7 +14,7 @@ DEFAULT_BENCHMARKS = "runs/bench/benchmarks.md"
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from bench.paper_tables import main as bench_main
+    from posefuse.bench.paper_tables import main as bench_main
 
     return bench_main(args)
 

@@ -1,7 +1,7 @@
 """Time of the learned front end per frame, split by stage, against the parts in view.
 
-python -m bench.frontend_speed --dataset DIR [--dataset DIR ...] [--model models/robi_like.onnx]
-    [--frames 30] [--threads 2]
+python -m posefuse.bench.frontend_speed --dataset DIR [--dataset DIR ...]
+    [--model models/robi_like.onnx] [--frames 30] [--threads 2]
 
 For each frame: stage one (pre-processing and the box detector), the crops, stage two's network
 on all crops at once, and the voting (with masks and duplicate removal), as the front end runs
@@ -15,13 +15,13 @@ import time
 
 import numpy as np
 
-from estimator.dataset import load_dataset
-from estimator.frontend.network import NetworkFrontend, input_scale_for
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.frontend.network import NetworkFrontend, input_scale_for
 
 
 def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:
     """Seconds per stage of one frame, and the number of detections."""
-    from estimator.frontend.two_stage import (
+    from posefuse.estimator.frontend.two_stage import (
         crop_boxes,
         decode_boxes,
         suppress_duplicates,
@@ -60,7 +60,7 @@ def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.resources import DEFAULT_MODEL
+    from posefuse.service.resources import DEFAULT_MODEL
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dataset", action="append", required=True)

@@ -1,6 +1,6 @@
 """Writes docs/objects.md: the symmetries detected for the procedural parts and the real meshes.
 
-python -m bench.objects_report --out docs/objects.md
+python -m posefuse.bench.objects_report --out docs/objects.md
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.eval_points import EVAL_SPACING, derive_eval_points
-from estimator.objects import load_mesh, mesh_diameter
-from estimator.pose_error import symmetry_transformations
-from estimator.symmetry import (
+from posefuse.estimator.eval_points import EVAL_SPACING, derive_eval_points
+from posefuse.estimator.objects import load_mesh, mesh_diameter
+from posefuse.estimator.pose_error import symmetry_transformations
+from posefuse.estimator.symmetry import (
     DEFAULT_EXACT_FRAC,
     DEFAULT_NEAR_FRAC,
     DEFAULT_TOL_FRAC,
@@ -27,7 +27,7 @@ REAL_MESHES = ("tee_fitting", "screw", "eye_bolt", "gear", "bracket")
 
 def meshes_to_report(real_dir: Path):
     """(source, name, mesh in metres) for the procedural parts, then the real meshes found."""
-    from sim.parts import PARTS, build_part
+    from posefuse.sim.parts import PARTS, build_part
 
     for name, _ in PARTS:
         mesh = build_part(name)
@@ -76,7 +76,7 @@ def render_markdown(rows: list[dict]) -> str:
     lines = [
         "# Object symmetries",
         "",
-        "Produced by `python -m bench.objects_report --out docs/objects.md`; checked by",
+        "Produced by `python -m posefuse.bench.objects_report --out docs/objects.md`; checked by",
         "`tests/test_objects_catalog.py`.",
         "",
         "A rotation is accepted as a symmetry when the 95th percentile of the distances from",

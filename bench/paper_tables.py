@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from bench.baselines import (
+from posefuse.bench.baselines import (
     MATCH_THRESHOLD_RGB,
     MATCH_THRESHOLD_RGBD,
     Candidate,
@@ -41,12 +41,12 @@ from bench.baselines import (
     rgb_candidate,
     rgbd_candidate,
 )
-from estimator.errors import PosefuseError
-from estimator.evaluation import PoseResult, evaluate
-from estimator.frontend.oracle import OracleConfig, OracleFrontend
-from estimator.rotation import RotationMatcher
-from estimator.run_dataset import run_dataset
-from estimator.tracker import MultiViewEstimator
+from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.evaluation import PoseResult, evaluate
+from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+from posefuse.estimator.rotation import RotationMatcher
+from posefuse.estimator.run_dataset import run_dataset
+from posefuse.estimator.tracker import MultiViewEstimator
 
 CHECKPOINTS = (4, 8)
 FULL = {"scenes": 50, "views": 8, "seed": 300, "width": 1280, "height": 720}
@@ -87,10 +87,10 @@ def ensure_dataset(root: Path, quick: bool, catalog_dir: str, profile: str = "mi
     none."""
     import dataclasses
 
-    from estimator.dataset import load_dataset
-    from estimator.objects import load_catalog
-    from sim.scenes import PROFILES, REALSENSE_1280x720
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     if not (root / "test").is_dir():
         spec = QUICK if quick else FULL
@@ -112,9 +112,9 @@ def make_frontend(dataset, kind: str, model: str | None = None):
     if kind == "oracle":
         return OracleFrontend(dataset, ORACLE)
     if kind == "network":
-        from estimator.frontend.network import NetworkFrontend
-        from estimator.run_dataset import LabelledNetworkFrontend
-        from service.resources import DEFAULT_MODEL
+        from posefuse.estimator.frontend.network import NetworkFrontend
+        from posefuse.estimator.run_dataset import LabelledNetworkFrontend
+        from posefuse.service.resources import DEFAULT_MODEL
 
         return LabelledNetworkFrontend(
             dataset, NetworkFrontend(model or DEFAULT_MODEL, dataset.catalog)
@@ -246,7 +246,7 @@ def score_runs(dataset, runs: dict[str, MethodRun]) -> dict:
 def closest_errors(dataset, run: MethodRun, n: int) -> dict[str, int]:
     """Each scored instance by the ADD-sym of the closest estimate of its class in its view:
     below 0.1 d, 0.1-0.5 d (estimated, inaccurate), none within 0.5 d (not estimated)."""
-    from estimator.evaluation import pose_error
+    from posefuse.estimator.evaluation import pose_error
 
     by_view: dict[tuple[int, int, int], list[PoseResult]] = {}
     for r in run.results[n]:
@@ -521,7 +521,7 @@ def dataset_seed(root: Path, default: int) -> int:
 
 
 def main(args) -> int:
-    from estimator.templates import build_template_bank
+    from posefuse.estimator.templates import build_template_bank
 
     start = time.perf_counter()
     root = Path(args.dataset)
@@ -555,8 +555,8 @@ def main(args) -> int:
     text = markdown(dataset, scores, meta)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    if out.exists():  # the next-best-view section of python -m bench.active stays
-        from bench.active import MARK_BEGIN
+    if out.exists():  # the next-best-view section of python -m posefuse.bench.active stays
+        from posefuse.bench.active import MARK_BEGIN
 
         previous = out.read_text()
         if MARK_BEGIN in previous:

@@ -1,6 +1,6 @@
 """Where the time of one frame goes, stage by stage, in the daemon's own code path.
 
-python -m bench.profile_frame --dataset DIR --scene N [--scene M ...] [--repeat 3]
+python -m posefuse.bench.profile_frame --dataset DIR --scene N [--scene M ...] [--repeat 3]
 
 For each scene, its views (1280x720, JPEG-encoded as a camera would send them) go through
 what the daemon does with a frame: decode, network, voting, then the estimator (association,
@@ -70,9 +70,9 @@ class StageTimer:
 @contextlib.contextmanager
 def instrumented(timer: StageTimer):
     """Wrap the estimator's stage functions with ``timer`` for the duration of the block."""
-    import estimator.rotation as rotation
-    import estimator.tracker as tracker
-    from estimator.mixture import RotationMixture
+    import posefuse.estimator.rotation as rotation
+    import posefuse.estimator.tracker as tracker
+    from posefuse.estimator.mixture import RotationMixture
 
     patches = [
         (tracker, "cost_matrix", "association"),
@@ -102,11 +102,11 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int) -
     """Per-stage mean ms per frame and whole-frame median/p95 over the scenes' views."""
     import zenoh
 
-    from estimator.dataset import load_dataset
-    from estimator.frontend.network import NetworkFrontend, preprocess
-    from estimator.tracker import Frame, MultiViewEstimator
-    from service.codec import decoders, encode_estimate, encode_image
-    from service.resources import DEFAULT_MODEL
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.frontend.network import NetworkFrontend, preprocess
+    from posefuse.estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.service.codec import decoders, encode_estimate, encode_image
+    from posefuse.service.resources import DEFAULT_MODEL
 
     ds = load_dataset(dataset_dir)
     network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads)

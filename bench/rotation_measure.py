@@ -1,6 +1,6 @@
 """Cost of one rotation measurement per object per view, two-step versus multi-scale.
 
-python -m bench.rotation_measure --dataset DIR [--rois 200]
+python -m posefuse.bench.rotation_measure --dataset DIR [--rois 200]
 
 On the views of a BOP dataset, for every instance with visib_fract > 0.75 (up to --rois), with
 the true translation and the visible mask (what the translation step and the front end give):
@@ -24,10 +24,10 @@ from collections import defaultdict
 
 import numpy as np
 
-from bench.baselines import MultiScaleMatcher
-from estimator.dataset import load_dataset
-from estimator.rotation import RotationMatcher, crop_roi
-from estimator.templates import build_template_bank, make_detector
+from posefuse.bench.baselines import MultiScaleMatcher
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.rotation import RotationMatcher, crop_roi
+from posefuse.estimator.templates import build_template_bank, make_detector
 
 
 def main(argv: list[str] | None = None) -> int:

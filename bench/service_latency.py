@@ -1,6 +1,6 @@
 """End-to-end service benchmark: latency, the highest input rate kept up with, bounded memory.
 
-python -m bench.service_latency --dataset DIR [--frames 40] [--rates 1 2 4 8] [--soak 120]
+python -m posefuse.bench.service_latency --dataset DIR [--frames 40] [--rates 1 2 4 8] [--soak 120]
 
 Starts ``posefuse serve`` as its own process on loopback, and from this process publishes the
 views of one scene (1280x720 JPEG, with camera info and poses) over and over with increasing
@@ -27,8 +27,8 @@ import urllib.request
 import msgpack
 import numpy as np
 
-from estimator.dataset import load_dataset
-from service.codec import encode_camera_info, encode_camera_pose, encode_image
+from posefuse.estimator.dataset import load_dataset
+from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
 
 
 def _free_port() -> int:
@@ -55,7 +55,7 @@ def start_daemon(cell: str) -> tuple[subprocess.Popen, int, str]:
     port, HTTP base URL)."""
     zport, hport = _free_port(), _free_port()
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
+        [sys.executable, "-m", "posefuse.cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
         + ["--http-port", str(hport), "--cell", cell],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

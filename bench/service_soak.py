@@ -1,6 +1,6 @@
 """Soak benchmark of the daemon: overload, several cameras and decompression bombs for minutes.
 
-python -m bench.service_soak [--minutes 10] [--cameras 4] [--overload 2 | --rate 20]
+python -m posefuse.bench.service_soak [--minutes 10] [--cameras 4] [--overload 2 | --rate 20]
     [--bomb-every 30]
 
 Starts ``posefuse serve`` as its own process on loopback. The frames are those of the shipped
@@ -28,15 +28,15 @@ from collections import Counter
 import msgpack
 import numpy as np
 
-from bench.service_latency import _free_port, _get, _rss_mb
+from posefuse.bench.service_latency import _free_port, _get, _rss_mb
 
 
 class Views:
     """The demo recording's views: camera info, and (image data, T_world_cam) per view."""
 
     def __init__(self, recording):
-        from service.codec import decode_camera_info, decode_camera_pose
-        from service.recording import read_messages
+        from posefuse.service.codec import decode_camera_info, decode_camera_pose
+        from posefuse.service.recording import read_messages
 
         self.info = None
         self.images: list[bytes] = []
@@ -61,7 +61,7 @@ class Camera:
     """One publishing camera: info first, then pose + image per frame, with sequence numbers."""
 
     def __init__(self, session, cell: str, cam_id: str, views: Views, offset: int):
-        from service.codec import encode_camera_info
+        from posefuse.service.codec import encode_camera_info
 
         self.session, self.views, self.k = session, views, offset
         self.root = f"{cell}/@v1/cam/{cam_id}"
@@ -71,7 +71,7 @@ class Camera:
         session.put(f"{self.root}/info", encode_camera_info(0, cam_id, views.info))
 
     def frame(self, period_ns: int) -> None:
-        from service.codec import _pack, encode_camera_pose
+        from posefuse.service.codec import _pack, encode_camera_pose
 
         v = self.views
         i = self.k % len(v.images)
@@ -93,7 +93,7 @@ class Camera:
         self.sent += 1
 
     def bomb(self, stream: bytes, encoding: str) -> None:
-        from bench.bombs import image_message
+        from posefuse.bench.bombs import image_message
 
         self.stamp += 1
         payload = image_message(
@@ -105,8 +105,8 @@ class Camera:
 def main(argv: list[str] | None = None) -> int:
     import zenoh
 
-    from bench.bombs import jpeg_bomb, png_bomb
-    from service.resources import DEFAULT_RECORDING
+    from posefuse.bench.bombs import jpeg_bomb, png_bomb
+    from posefuse.service.resources import DEFAULT_RECORDING
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=10.0)
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     base = f"http://127.0.0.1:{hport}"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "POSEFUSE_CELL": "soak"}
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}",
+        [sys.executable, "-m", "posefuse.cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}",
          "--http-port", str(hport)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
     )  # fmt: skip

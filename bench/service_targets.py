@@ -1,6 +1,6 @@
 """The service's speed targets, measured end to end: latency and throughput of ``posefuse serve``.
 
-python -m bench.service_targets --few DIR:SCENE --many DIR:SCENE [--seconds 20]
+python -m posefuse.bench.service_targets --few DIR:SCENE --many DIR:SCENE [--seconds 20]
 
 Starts ``posefuse serve`` as its own process on loopback and publishes, from this process, the
 views of a scene (1280x720 JPEG, camera info and poses, as cameras do) over and over with
@@ -26,15 +26,15 @@ import urllib.request
 import msgpack
 import numpy as np
 
-from bench.service_latency import FirstUpdates, _get, peer_config, start_daemon
+from posefuse.bench.service_latency import FirstUpdates, _get, peer_config, start_daemon
 
 CELL = "bench"
 
 
 def _scene_messages(spec: str) -> tuple[list, int]:
     """[(camera, T_world_cam, image message dict)] of a 'DIR:SCENE' spec and its objects/view."""
-    from estimator.dataset import load_dataset
-    from service.codec import encode_image
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.service.codec import encode_image
 
     path, _, scene_id = spec.rpartition(":")
     scene = load_dataset(path).scene(int(scene_id))
@@ -55,7 +55,7 @@ class Publisher:
         self.put_time: dict[int, float] = {}
 
     def send(self, cam: str, view) -> None:
-        from service.codec import encode_camera_info, encode_camera_pose
+        from posefuse.service.codec import encode_camera_info, encode_camera_pose
 
         camera, T_world_cam, msg = view
         self.stamp += 10_000_000

@@ -1,7 +1,7 @@
 """The learning curve of a front-end checkpoint: recall, precision and center error on the
 tuning sets against cumulative CPU hours, as a table and a plot.
 
-python -m bench.training_curve --checkpoint models/robi_like.ckpt
+python -m posefuse.bench.training_curve --checkpoint models/robi_like.ckpt
     [--plot docs/training_curve.png] [--markdown]
 
 The points are the ones the training run scored at its checkpoints (``posefuse train --tune``).

@@ -1,6 +1,6 @@
 """The translation step on synthetic multi-view bin sequences with oracle detections.
 
-python -m bench.translation_sequences [--sequences 30] [--seed 1000]
+python -m posefuse.bench.translation_sequences [--sequences 30] [--seed 1000]
 
 Scenes come from :mod:`sim.scenes` (physically plausible bins of the procedural catalog, 8 views
 at 0.5-0.9 m, 1280x720); detections from :mod:`sim.sequences` (center sigma 2 px, 10% dropped,
@@ -18,11 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from estimator.metrics import association_score, nees, track_identities, update_members
-from estimator.objects import Catalog, load_catalog
-from estimator.tracker import CONFIRMED, MultiViewEstimator, TrackerConfig
-from sim.scenes import SceneSpec
-from sim.sequences import make_sequence
+from posefuse.estimator.metrics import association_score, nees, track_identities, update_members
+from posefuse.estimator.objects import Catalog, load_catalog
+from posefuse.estimator.tracker import CONFIRMED, MultiViewEstimator, TrackerConfig
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 CHECKPOINTS = (1, 2, 4, 8)
 
@@ -96,7 +96,7 @@ def run_sequences(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.resources import DEFAULT_CATALOG
+    from posefuse.service.resources import DEFAULT_CATALOG
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--catalog", default=DEFAULT_CATALOG)

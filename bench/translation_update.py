@@ -1,6 +1,6 @@
 """Cost of one translation update of one object with 8 views of history.
 
-python -m bench.translation_update [--repeats 2000]
+python -m posefuse.bench.translation_update [--repeats 2000]
 
 An update appends the new view's center to the track and re-runs the robust Gauss-Newton from
 the previous estimate, exactly as :class:`estimator.tracker.MultiViewEstimator` does. Prints the
@@ -15,8 +15,12 @@ import time
 
 import numpy as np
 
-from estimator.translation import CenterObservations, estimate_translation, prior_from_first_view
-from sim.scenes import REALSENSE_1280x720, SceneSpec, sample_views
+from posefuse.estimator.translation import (
+    CenterObservations,
+    estimate_translation,
+    prior_from_first_view,
+)
+from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec, sample_views
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,7 +1,7 @@
-"""``python -m cli ...``: the ``posefuse`` command."""
+"""``python -m posefuse.cli ...``: the ``posefuse`` command."""
 
 import sys
 
-from cli.main import main
+from posefuse.cli.main import main
 
 sys.exit(main())

@@ -12,9 +12,9 @@ import argparse
 import json
 from pathlib import Path
 
-from cli.common import RUNS, add_command
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+from posefuse.cli.common import RUNS, add_command
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 
 def register(subparsers) -> None:
@@ -47,10 +47,16 @@ def register(subparsers) -> None:
 
 
 def _cmd_run_active(args: argparse.Namespace) -> int:
-    from estimator.frontend.network import NetworkFrontend
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from sim.active import ActiveConfig, RecordedScene, RenderedScene, run_policy, score_steps
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.sim.active import (
+        ActiveConfig,
+        RecordedScene,
+        RenderedScene,
+        run_policy,
+        score_steps,
+    )
 
     try:
         config = ActiveConfig(budget=args.budget, confidence=args.confidence)
@@ -59,7 +65,7 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
     if args.scenes < 1:
         raise PosefuseError("run-active: --scenes must be at least 1")
     if args.dataset:
-        from estimator.dataset import load_dataset
+        from posefuse.estimator.dataset import load_dataset
 
         dataset = load_dataset(args.dataset)
         catalog = dataset.catalog
@@ -80,8 +86,8 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
             source = RecordedScene(dataset.scene(scene_id), detect)
             where = f"{args.dataset} scene {scene_id}"
         else:
-            from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
-            from sim.synth import scene_seed
+            from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
+            from posefuse.sim.synth import scene_seed
 
             spec = PROFILES[args.profile]
             seed = scene_seed(args.seed, scene_id)

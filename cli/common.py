@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from estimator.errors import PosefuseError
+from posefuse.estimator.errors import PosefuseError
 
 # Outputs that nobody asked for by path go under runs/ of the current folder, never into the
 # project's own files: regenerating a committed file takes an explicit --out.
@@ -53,12 +53,12 @@ def _settings(args: argparse.Namespace):
     (POSEFUSE_*), the POSEFUSE_CONFIG file and the defaults."""
     from pydantic import ValidationError
 
-    from service.settings import Settings
+    from posefuse.service.settings import Settings
 
     overrides = {}
     parts = getattr(args, "parts", None)
     if parts is not None:
-        from sim.onboard import load_part_set
+        from posefuse.sim.onboard import load_part_set
 
         if getattr(args, "catalog", None) or getattr(args, "model", None):
             raise PosefuseError("--parts names the catalog and the model: drop --catalog/--model")

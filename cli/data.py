@@ -13,13 +13,13 @@ import json
 import time
 from pathlib import Path
 
-from cli.common import _catalog_table, add_command
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_CATALOG
+from posefuse.cli.common import _catalog_table, add_command
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_catalog(args: argparse.Namespace) -> int:
-    from estimator.objects import Catalog, load_mesh, make_model, write_catalog
+    from posefuse.estimator.objects import Catalog, load_mesh, make_model, write_catalog
 
     if args.mesh:
         models = []
@@ -28,7 +28,7 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
             models.append(make_model(k + 1, name, load_mesh(path, units=args.units)))
         catalog = Catalog(models)
     else:
-        from sim.catalog import robi_like_catalog
+        from posefuse.sim.catalog import robi_like_catalog
 
         catalog = robi_like_catalog()
     write_catalog(Path(args.out), catalog)
@@ -40,9 +40,9 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
 def _cmd_synth(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from estimator.objects import load_catalog
-    from sim.scenes import INTRINSICS, PROFILES
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.sim.scenes import INTRINSICS, PROFILES
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     if args.intrinsics not in INTRINSICS:
         raise PosefuseError(
@@ -76,8 +76,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from estimator.dataset import load_dataset
-    from estimator.evaluation import evaluate, read_results, read_targets
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.evaluation import evaluate, read_results, read_targets
 
     dataset = load_dataset(args.dataset, split=args.split)
     results = read_results(args.results)
@@ -97,8 +97,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_overlay(args: argparse.Namespace) -> int:
-    from estimator.dataset import load_dataset
-    from sim.overlay import write_gt_overlay
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.sim.overlay import write_gt_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)
     write_gt_overlay(dataset, args.scene, args.im, args.out)

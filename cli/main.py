@@ -13,9 +13,9 @@ import os
 import sys
 from importlib.metadata import entry_points
 
-from cli import active, data, onboard, record, run, serve, train
-from cli.common import HelpFormatter
-from estimator.errors import PosefuseError
+from posefuse.cli import active, data, onboard, record, run, serve, train
+from posefuse.cli.common import HelpFormatter
+from posefuse.estimator.errors import PosefuseError
 
 ENTRY_POINT_GROUP = "posefuse.commands"
 # The built-in groups, in the order of `posefuse --help`: append a module to add a group.

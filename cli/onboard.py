@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from cli.common import add_command
-from estimator.errors import PosefuseError
+from posefuse.cli.common import add_command
+from posefuse.estimator.errors import PosefuseError
 
 
 def _parse_symmetry(specs: list[str] | None) -> dict[str, str]:
@@ -32,7 +32,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
             'onboard trains the front end and needs torch: pip install -e ".[train]" '
             "(a CPU build, torch==2.13.0)"
         ) from None
-    from sim.onboard import OnboardConfig, onboard, parts_table
+    from posefuse.sim.onboard import OnboardConfig, onboard, parts_table
 
     config = OnboardConfig(
         units=args.units,
@@ -64,8 +64,8 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
 
 def _write_demo(out: Path) -> None:
     """DIR/demo.mcap: the held-out mixed bins as a camera publishes them, for ``demo --parts``."""
-    from clients.demo import make_recording
-    from estimator.dataset import load_dataset
+    from posefuse.clients.demo import make_recording
+    from posefuse.estimator.dataset import load_dataset
 
     dataset = load_dataset(out / "validation" / "mixed")
     make_recording(dataset, dataset.scene_ids, out / "demo.mcap", catalog=dataset.catalog)

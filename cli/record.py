@@ -14,7 +14,7 @@ import threading
 import time
 from pathlib import Path
 
-from cli.common import (
+from posefuse.cli.common import (
     RUNS,
     _add_transport_args,
     _settings,
@@ -22,8 +22,8 @@ from cli.common import (
     add_parts_arg,
     settings_default,
 )
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_CATALOG
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
@@ -31,11 +31,11 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from estimator.objects import load_catalog
-    from service.foxglove import FoxgloveMirror
-    from service.keys import Keys
-    from service.recording import Recorder, RecordingFull
-    from service.settings import zenoh_config
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.service.foxglove import FoxgloveMirror
+    from posefuse.service.keys import Keys
+    from posefuse.service.recording import Recorder, RecordingFull
+    from posefuse.service.settings import zenoh_config
 
     settings = _settings(args)
     keys = Keys(settings.cell)
@@ -59,7 +59,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())  # as Ctrl-C: the file is finished
     full: RecordingFull | None = None
     if args.ros2:  # a rosbag2 folder of ROS 2 messages instead of our own MCAP
-        from service.ros2 import Ros2BagRecorder
+        from posefuse.service.ros2 import Ros2BagRecorder
 
         if Path(args.out).exists():
             raise PosefuseError(f"--out {args.out}: a rosbag2 folder is created; it exists")
@@ -98,10 +98,10 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
     import zenoh
     from tqdm import tqdm
 
-    from clients.query import _get_json
-    from service.recording import read_messages
-    from service.replay import replay_live
-    from service.settings import zenoh_config
+    from posefuse.clients.query import _get_json
+    from posefuse.service.recording import read_messages
+    from posefuse.service.replay import replay_live
+    from posefuse.service.settings import zenoh_config
 
     if args.rate <= 0:
         raise PosefuseError("--rate must be positive")
@@ -135,12 +135,12 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from service.foxglove import FoxgloveMirror
-    from service.recording import Recorder, RecordingError, read_messages
-    from service.replay import replay_offline, write_estimates_json
-    from service.worker import EstimatorWorker, make_detector
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.service.foxglove import FoxgloveMirror
+    from posefuse.service.recording import Recorder, RecordingError, read_messages
+    from posefuse.service.replay import replay_offline, write_estimates_json
+    from posefuse.service.worker import EstimatorWorker, make_detector
 
     settings = _settings(args)
     if args.live:
@@ -177,11 +177,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_demo(args: argparse.Namespace) -> int:
-    from clients.demo import make_recording
-    from estimator.dataset import load_dataset
-    from estimator.objects import load_catalog
-    from sim.scenes import SceneSpec
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.clients.demo import make_recording
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.sim.scenes import SceneSpec
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     catalog = load_catalog(args.catalog)
     data = Path(args.work)

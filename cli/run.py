@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cli.common import RUNS, add_command, add_parts_arg
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+from posefuse.cli.common import RUNS, add_command, add_parts_arg
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 # The oracle front end of run-dataset (and of the quickstart): true centers with this much
 # Gaussian noise (px), this share of the instances missed and this many false positives per
@@ -53,12 +53,12 @@ def make_frontend(dataset, kind: str, oracle=None, model: str = DEFAULT_MODEL, s
     """The detections of a run: ``oracle`` (noisy ground truth, ``oracle`` an OracleConfig) or
     ``network`` (the learned front end, labelled with the instance each lies on for scoring)."""
     if kind == "network":
-        from estimator.frontend.network import NetworkFrontend
-        from estimator.run_dataset import LabelledNetworkFrontend
+        from posefuse.estimator.frontend.network import NetworkFrontend
+        from posefuse.estimator.run_dataset import LabelledNetworkFrontend
 
         return LabelledNetworkFrontend(dataset, NetworkFrontend(model, dataset.catalog, seed=seed))
     if kind == "oracle":
-        from estimator.frontend.oracle import OracleFrontend
+        from posefuse.estimator.frontend.oracle import OracleFrontend
 
         return OracleFrontend(dataset, oracle)
     raise PosefuseError(f"--frontend: {kind!r} is not known; use oracle or network")
@@ -77,16 +77,21 @@ def run_and_write(
     template banks built or loaded once) and write its tables into ``out``: translation errors,
     with ``rotation`` also BOP results and targets per checkpoint, their scores and the fate of
     every scored instance."""
-    from estimator.evaluation import checkpoint_markdown, evaluate, write_results, write_targets
-    from estimator.fates import fate_table
-    from estimator.run_dataset import (
+    from posefuse.estimator.evaluation import (
+        checkpoint_markdown,
+        evaluate,
+        write_results,
+        write_targets,
+    )
+    from posefuse.estimator.fates import fate_table
+    from posefuse.estimator.run_dataset import (
         CHECKPOINTS,
         run_dataset,
         summary_markdown,
         write_fates,
         write_rows,
     )
-    from estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.tracker import MultiViewEstimator
 
     shared = MultiViewEstimator(dataset.catalog, show_progress=not quiet)
     if rotation:  # build (or load) every class's templates once, with a progress bar
@@ -137,13 +142,13 @@ def run_and_write(
 
 
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
-    from estimator.dataset import load_dataset
-    from estimator.frontend.oracle import OracleConfig
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.frontend.oracle import OracleConfig
 
     if args.frontend not in ("oracle", "network"):
         raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
     if args.parts is not None:
-        from sim.onboard import load_part_set
+        from posefuse.sim.onboard import load_part_set
 
         if args.model is not None:
             raise PosefuseError("--parts names the model: drop --model")
@@ -184,8 +189,8 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
 
 
 def _cmd_templates(args: argparse.Namespace) -> int:
-    from estimator.objects import load_catalog
-    from estimator.templates import build_template_bank
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.templates import build_template_bank
 
     catalog = load_catalog(args.catalog)
     rows = [
@@ -203,9 +208,9 @@ def _cmd_templates(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_frontend(args: argparse.Namespace) -> int:
-    from estimator.dataset import load_dataset
-    from estimator.frontend.metrics import score_frontend
-    from estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.frontend.metrics import score_frontend
+    from posefuse.estimator.frontend.network import NetworkFrontend
 
     dataset = load_dataset(args.dataset, split=args.split)
     frontend = NetworkFrontend(args.model, dataset.catalog, threads=args.threads)
@@ -224,9 +229,9 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
 def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
     import cv2
 
-    from estimator.dataset import load_dataset
-    from estimator.frontend.network import NetworkFrontend
-    from sim.overlay import frontend_overlay
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.sim.overlay import frontend_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)
     frontend = NetworkFrontend(args.model, dataset.catalog)
@@ -247,13 +252,13 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
 
 
 def _cmd_quickstart(args: argparse.Namespace) -> int:
-    from estimator.dataset import load_dataset
-    from estimator.evaluation import checkpoint_markdown
-    from estimator.frontend.oracle import OracleConfig
-    from estimator.objects import load_catalog
-    from sim.overlay import write_gt_overlay
-    from sim.scenes import SceneSpec
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.evaluation import checkpoint_markdown
+    from posefuse.estimator.frontend.oracle import OracleConfig
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.sim.overlay import write_gt_overlay
+    from posefuse.sim.scenes import SceneSpec
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     out = Path(args.out)
     catalog = load_catalog(args.catalog)

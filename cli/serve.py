@@ -13,7 +13,7 @@ import json
 import signal
 import time
 
-from cli.common import (
+from posefuse.cli.common import (
     _add_transport_args,
     _settings,
     add_command,
@@ -21,8 +21,8 @@ from cli.common import (
     claim_http_port,
     settings_default,
 )
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_RECORDING
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_RECORDING
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -30,13 +30,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from service.api import create_cells_app
-    from service.cells import CellSet
-    from service.daemon import Daemon
-    from service.state import StateStore, catalog_fingerprint
-    from service.worker import EstimatorWorker, make_detector
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.service.api import create_cells_app
+    from posefuse.service.cells import CellSet
+    from posefuse.service.daemon import Daemon
+    from posefuse.service.state import StateStore, catalog_fingerprint
+    from posefuse.service.worker import EstimatorWorker, make_detector
 
     limit_malloc_arenas()
     settings = claim_http_port(_settings(args))
@@ -136,9 +136,9 @@ def _cmd_publish(args: argparse.Namespace) -> int:
     import zenoh
     from tqdm import tqdm
 
-    from clients.camera import publish, scene_messages
-    from estimator.dataset import load_dataset
-    from service.settings import zenoh_config
+    from posefuse.clients.camera import publish, scene_messages
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.service.settings import zenoh_config
 
     settings = _settings(args)
     if args.rate <= 0:
@@ -175,12 +175,12 @@ def _cmd_publish(args: argparse.Namespace) -> int:
 
 
 def _cmd_objects(args: argparse.Namespace) -> int:
-    from clients.query import objects_http, objects_zenoh, table
+    from posefuse.clients.query import objects_http, objects_zenoh, table
 
     if args.zenoh:
         import zenoh
 
-        from service.settings import zenoh_config
+        from posefuse.service.settings import zenoh_config
 
         settings = _settings(args)
         with zenoh.open(zenoh_config(settings)) as session:
@@ -196,7 +196,7 @@ def _cmd_objects(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from service.demo import run_demo
+    from posefuse.service.demo import run_demo
 
     settings = _settings(args)
     recording = args.recording

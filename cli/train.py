@@ -9,9 +9,9 @@ import argparse
 import json
 from pathlib import Path
 
-from cli.common import add_command
-from estimator.errors import PosefuseError
-from service.resources import DEFAULT_CATALOG
+from posefuse.cli.common import add_command
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -21,8 +21,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise PosefuseError(
             'training needs torch: pip install -e ".[train]" (a CPU build, torch==2.13.0)'
         ) from None
-    from estimator.objects import load_catalog
-    from sim.train import TrainConfig, train
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.sim.train import TrainConfig, train
 
     load_catalog(args.catalog)  # a CatalogError before any work
     if not args.out.endswith(".onnx"):

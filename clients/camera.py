@@ -17,9 +17,9 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from service.codec import encode_camera_info, encode_camera_pose, encode_image
-from service.keys import Keys
-from service.sync import interpolate_pose
+from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
+from posefuse.service.keys import Keys
+from posefuse.service.sync import interpolate_pose
 
 
 def scene_messages(

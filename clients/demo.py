@@ -6,12 +6,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from clients.camera import scene_messages
-from service.codec import encode_groundtruth, encode_reset
-from service.demo import groundtruth_key
-from service.foxglove import FoxgloveMirror
-from service.keys import Keys
-from service.recording import Recorder
+from posefuse.clients.camera import scene_messages
+from posefuse.service.codec import encode_groundtruth, encode_reset
+from posefuse.service.demo import groundtruth_key
+from posefuse.service.foxglove import FoxgloveMirror
+from posefuse.service.keys import Keys
+from posefuse.service.recording import Recorder
 
 SCENE_GAP_NS = 10_000_000_000  # 10 s of stamp time between scenes
 

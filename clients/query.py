@@ -20,7 +20,7 @@ def objects_http(base_url: str, timeout: float = 5.0) -> list[dict]:
 
 
 def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list[dict]:
-    from service.keys import Keys
+    from posefuse.service.keys import Keys
 
     key = Keys(cell).state
     for reply in session.get(key, timeout=timeout):

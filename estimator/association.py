@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from estimator.translation import (
+from posefuse.estimator.translation import (
     MIN_DEPTH,
     CenterObservations,
     predict,

@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimator.camera import Camera
-from estimator.errors import DatasetError
-from estimator.objects import Catalog, load_catalog
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.errors import DatasetError
+from posefuse.estimator.objects import Catalog, load_catalog
 
 
 @dataclass(frozen=True, eq=False)

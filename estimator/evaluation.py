@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from estimator.errors import ResultsError
-from estimator.pose_error import transform_points
+from posefuse.estimator.errors import ResultsError
+from posefuse.estimator.pose_error import transform_points
 
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 METRICS = ("add_sym", "mssd", "adi")

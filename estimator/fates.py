@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimator import pose_error
-from estimator.evaluation import error_matrix, match_estimates
+from posefuse.estimator import pose_error
+from posefuse.estimator.evaluation import error_matrix, match_estimates
 
 FATES = (
     "correct",

@@ -29,7 +29,7 @@ components. A candidate view ``c`` scores
   below ``min_visibility`` gain nothing from that part.
 
 Everything is batched over candidates and tracks; 100 candidates x 30 tracks take a few tens
-of ms (``python -m bench.active --speed``).
+of ms (``python -m posefuse.bench.active --speed``).
 """
 
 from __future__ import annotations
@@ -41,11 +41,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from estimator.camera import Camera
-from estimator.geometry import so3_exp
-from estimator.objects import ObjectModel
-from estimator.templates import TemplateBank
-from estimator.translation import MIN_DEPTH, prior_from_first_view
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.geometry import so3_exp
+from posefuse.estimator.objects import ObjectModel
+from posefuse.estimator.templates import TemplateBank
+from posefuse.estimator.translation import MIN_DEPTH, prior_from_first_view
 
 N_ORIENTATIONS = 8
 NO_ROTATION = np.zeros((0, 3, 3))
@@ -55,7 +55,7 @@ NO_ROTATION = np.zeros((0, 3, 3))
 class NbvConfig:
     center_sigma_px: float = 2.0  # expected std of one more center measurement
     # e: position finer than this x diameter is not worth a view. 0.05 rather than 0.02: on
-    # the mixed bins of the tuning seed (python -m bench.active --profiles mixed --scenes 4
+    # the mixed bins of the tuning seed (python -m posefuse.bench.active --profiles mixed --scenes 4
     # --seeds mixed=4242), 0.02 spent the late views on triangulation and lost 6-9 points of
     # ADD-sym at 7-8 views; 0.05 did not
     precision_rel: float = 0.05
@@ -264,7 +264,7 @@ def default_candidates(
 def tracks_for_nbv(estimator, max_components: int = 3) -> list[NbvTrack]:
     """The tracks of a :class:`~estimator.tracker.MultiViewEstimator` and its held detections
     (a part seen in one view: its ray with the box-depth prior of the translation step)."""
-    from estimator.tracker import CONFIRMED
+    from posefuse.estimator.tracker import CONFIRMED
 
     out = []
     for key in sorted(estimator.tracks):

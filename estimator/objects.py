@@ -16,15 +16,15 @@ import numpy as np
 import trimesh
 from scipy.spatial.distance import pdist
 
-from estimator.errors import CatalogError, MeshError
-from estimator.eval_points import (
+from posefuse.estimator.errors import CatalogError, MeshError
+from posefuse.estimator.eval_points import (
     derive_eval_points,
     eval_points_path,
     read_eval_points,
     write_eval_points,
 )
-from estimator.pose_error import symmetry_transformations
-from estimator.symmetry import (
+from posefuse.estimator.pose_error import symmetry_transformations
+from posefuse.estimator.symmetry import (
     ContinuousSymmetry,
     describe_symmetries,
     detect_symmetries,

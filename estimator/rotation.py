@@ -11,7 +11,7 @@ orientations are spread over T x T pixels and turned into 8 response maps (4 for
 orientation, one less per bin of difference), and each template's similarity is the mean
 response at its features, in percent. ``cv2.linemod.Detector.match`` would evaluate every
 template at every position of the RoI; measured on 128 x 128 RoIs it costs 4.5-6 us per
-template (``python -m bench.rotation_measure``; a 3,000-template bank: ~15 ms), while the
+template (``python -m posefuse.bench.rotation_measure``; a 3,000-template bank: ~15 ms), while the
 position is already known here, so the templates are scored at that position only, in one
 vectorised gather (1.3-1.9 ms per RoI with the whole re-crop).
 
@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.geometry import rotation_angle, so3_exp
-from estimator.templates import TemplateBank
+from posefuse.estimator.geometry import rotation_angle, so3_exp
+from posefuse.estimator.templates import TemplateBank
 
 N_ORIENTATIONS = 8
 

@@ -17,17 +17,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from estimator.evaluation import PoseResult
-from estimator.fates import InstanceFate, TrackPose, instance_fates
-from estimator.frontend.oracle import OracleFrontend
-from estimator.metrics import (
+from posefuse.estimator.evaluation import PoseResult
+from posefuse.estimator.fates import InstanceFate, TrackPose, instance_fates
+from posefuse.estimator.frontend.oracle import OracleFrontend
+from posefuse.estimator.metrics import (
     AssociationScore,
     association_score,
     nees,
     track_identities,
     update_members,
 )
-from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
 
 CHECKPOINTS = (2, 4, 8)  # a track needs two views (estimator.founding)
 
@@ -43,7 +43,7 @@ class LabelledNetworkFrontend:
         self.max_px = max_px
 
     def detect_with_truth(self, view):
-        from estimator.frontend.metrics import match_to_truth
+        from posefuse.estimator.frontend.metrics import match_to_truth
 
         image = self.dataset.scene(view.scene_id).load_rgb(view.im_id)
         dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)

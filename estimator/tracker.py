@@ -24,15 +24,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimator.association import (
+from posefuse.estimator.association import (
     AssociationConfig,
     TrackView,
     assign,
     cost_matrix,
     innovation_cost,
 )
-from estimator.camera import Camera
-from estimator.founding import (
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.founding import (
     FoundingConfig,
     FoundingPair,
     HeldDetection,
@@ -40,19 +40,19 @@ from estimator.founding import (
     pair_observations,
     triangulate_pair,
 )
-from estimator.frontend.detection import Detection
-from estimator.merging import MergeCandidate, MergeConfig, merge_pairs
-from estimator.mixture import MixtureConfig, RotationMixture
-from estimator.objects import Catalog
-from estimator.rotation import RotationConfig, RotationMatcher
-from estimator.splitting import SplitConfig, outlier_views
-from estimator.templates import (
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
+from posefuse.estimator.mixture import MixtureConfig, RotationMixture
+from posefuse.estimator.objects import Catalog
+from posefuse.estimator.rotation import RotationConfig, RotationMatcher
+from posefuse.estimator.splitting import SplitConfig, outlier_views
+from posefuse.estimator.templates import (
     TemplateBank,
     TemplateConfig,
     build_template_bank,
     build_template_banks,
 )
-from estimator.translation import (
+from posefuse.estimator.translation import (
     MIN_DEPTH,
     CenterObservations,
     TranslationEstimate,

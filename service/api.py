@@ -21,7 +21,7 @@ from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
 
-from service.codec import estimate_to_dict
+from posefuse.service.codec import estimate_to_dict
 
 EXAMPLE_ESTIMATE = {
     "v": 1,
@@ -397,7 +397,7 @@ def create_app(daemon) -> FastAPI:
         },
     )
     def nbv(request: NbvRequestModel | None = None):
-        from service.codec import DecodeError, nbv_request_from_dict
+        from posefuse.service.codec import DecodeError, nbv_request_from_dict
 
         body = (request or NbvRequestModel()).model_dump(exclude_none=True)
         for c in body.get("candidates", []):

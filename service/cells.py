@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 import threading
 
-from service.daemon import Daemon
-from service.settings import Settings, zenoh_config
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings, zenoh_config
 
 log = logging.getLogger("posefuse.cells")
 

@@ -39,7 +39,7 @@ from collections import Counter
 
 import numpy as np
 
-from service.codec import (
+from posefuse.service.codec import (
     DecodeError,
     NbvRequest,
     decode_nbv_request,
@@ -50,11 +50,11 @@ from service.codec import (
     estimate_to_dict,
     nbv_reply,
 )
-from service.ingest import FairIngest
-from service.keys import Keys
-from service.settings import Settings, ingest_config, sync_config, zenoh_config
-from service.sync import FrameSynchronizer
-from service.worker import EstimatorWorker, now_ns
+from posefuse.service.ingest import FairIngest
+from posefuse.service.keys import Keys
+from posefuse.service.settings import Settings, ingest_config, sync_config, zenoh_config
+from posefuse.service.sync import FrameSynchronizer
+from posefuse.service.worker import EstimatorWorker, now_ns
 
 log = logging.getLogger("posefuse.daemon")
 
@@ -93,7 +93,7 @@ class Daemon:
         self._role_lock = threading.Lock()
         self.ros2 = None  # the ROS 2 key layout when settings.ros2 is not off
         if settings.ros2 != "off":
-            from service.ros2 import Ros2Layout
+            from posefuse.service.ros2 import Ros2Layout
 
             self.ros2 = Ros2Layout(settings.ros2, settings.ros2_domain_id)
             models = getattr(getattr(worker, "estimator", None), "catalog", {}) or {}
@@ -181,7 +181,7 @@ class Daemon:
         kind, _, ros_type = kind.partition(":")
         try:
             if ros_type:  # a ROS 2 message: as the native one, then the native checks
-                from service.ros2 import to_native
+                from posefuse.service.ros2 import to_native
 
                 payload = to_native(ros_type, payload, cam_id)
             msg = self.decode[kind](payload)
@@ -371,7 +371,7 @@ class Daemon:
 
     def _publish_ros2(self, session, stamp_ns: int, updated) -> None:
         """The updated estimates as a Detection3DArray and a TFMessage (service/ros2.py)."""
-        from service.ros2 import DETECTIONS, TF, encode_detections, encode_tf
+        from posefuse.service.ros2 import DETECTIONS, TF, encode_detections, encode_tf
 
         cell = self.settings.cell
         try:
@@ -393,7 +393,12 @@ class Daemon:
         """Rank candidate views (the request's, or the default hemisphere over the bin) by
         what they would teach the estimator (estimator/nbv.py). ValueError when a candidate
         has no intrinsics and no camera info is known to give them."""
-        from estimator.nbv import BinRegion, CandidateView, default_candidates, score_candidates
+        from posefuse.estimator.nbv import (
+            BinRegion,
+            CandidateView,
+            default_candidates,
+            score_candidates,
+        )
 
         s = self.settings
         T_world_bin = np.eye(4)
@@ -419,7 +424,7 @@ class Daemon:
         return nbv_reply(scores, candidates, tracks, request.top_k)
 
     def objects_needing_views(self) -> list[str]:
-        from estimator.nbv import needs_view
+        from posefuse.estimator.nbv import needs_view
 
         tracks = self.worker.nbv_tracks()
         return [t.key for t in tracks if not t.key.startswith("held/") and needs_view(t)]
@@ -448,7 +453,7 @@ class Daemon:
         """Restore the tracks of the state folder's snapshot; how many objects came back."""
         if self.state_store is None:
             return 0
-        from service.state import StateError
+        from posefuse.service.state import StateError
 
         try:
             state = self.state_store.load()
@@ -495,7 +500,7 @@ class Daemon:
     def serve(self, session, primary: bool = True) -> None:
         """Serve this cell on an open session until :meth:`stop`: the threads, the election
         (:mod:`service.election`), at stop the last snapshot."""
-        from service.election import Election
+        from posefuse.service.election import Election
 
         self.start(session)
         self.election = Election(

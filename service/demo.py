@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from service.codec import decode_groundtruth
-from service.keys import Keys
+from posefuse.service.codec import decode_groundtruth
+from posefuse.service.keys import Keys
 
 
 def groundtruth_key(cell: str, scene_id: int) -> str:
@@ -30,7 +30,7 @@ def score_segment(
     rotation yet (one view) or no part of its class left gets errors of ``None``."""
     from scipy.spatial.transform import Rotation
 
-    from estimator.evaluation import pose_error
+    from posefuse.estimator.evaluation import pose_error
 
     rows = []
     free = set(range(len(truth)))
@@ -86,14 +86,14 @@ def run_demo(
     import zenoh
     from tqdm import tqdm
 
-    from estimator.objects import load_catalog
-    from estimator.tracker import MultiViewEstimator
-    from service.api import create_app
-    from service.codec import decode_reset, estimate_to_dict
-    from service.daemon import Daemon
-    from service.recording import read_messages
-    from service.settings import zenoh_config
-    from service.worker import EstimatorWorker, make_detector
+    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.service.api import create_app
+    from posefuse.service.codec import decode_reset, estimate_to_dict
+    from posefuse.service.daemon import Daemon
+    from posefuse.service.recording import read_messages
+    from posefuse.service.settings import zenoh_config
+    from posefuse.service.worker import EstimatorWorker, make_detector
 
     catalog = load_catalog(settings.catalog)
     estimator = MultiViewEstimator(catalog)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.codec import (
+from posefuse.service.codec import (
     DecodeError,
     decode_camera_info,
     decode_camera_pose,
@@ -35,7 +35,7 @@ from service.codec import (
     decode_image_compressed,
     decode_reset,
 )
-from service.keys import Keys
+from posefuse.service.keys import Keys
 
 DISPLAY_FACES = 800  # meshes are decimated to this many faces for the scene entities
 

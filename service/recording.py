@@ -19,8 +19,8 @@ from mcap.records import Channel, Footer, Message
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from estimator.errors import PosefuseError
-from service.foxglove import schema_bytes
+from posefuse.estimator.errors import PosefuseError
+from posefuse.service.foxglove import schema_bytes
 
 RAW_ENCODING = "msgpack"
 PROFILE = "posefuse"

@@ -9,17 +9,17 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from service.codec import (
+from posefuse.service.codec import (
     DecodeError,
     decode_reset,
     decoders,
     encode_estimate,
     estimate_to_dict,
 )
-from service.keys import Keys
-from service.recording import Recorder
-from service.sync import FrameSynchronizer
-from service.worker import EstimatorWorker
+from posefuse.service.keys import Keys
+from posefuse.service.recording import Recorder
+from posefuse.service.sync import FrameSynchronizer
+from posefuse.service.worker import EstimatorWorker
 
 
 @dataclass

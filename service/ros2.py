@@ -43,7 +43,7 @@ import msgpack
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.codec import VERSION, DecodeError, compressed_image_size
+from posefuse.service.codec import VERSION, DecodeError, compressed_image_size
 
 LAYOUTS = ("off", "bridge", "rmw_zenoh")
 DETECTIONS = "vision_msgs/msg/Detection3DArray"
@@ -367,7 +367,7 @@ class Ros2BagRecorder:
     def __init__(self, path, cell: str):
         from rosbags.rosbag2 import StoragePlugin, Writer
 
-        from service.keys import Keys
+        from posefuse.service.keys import Keys
 
         self.cell = cell
         self.keys = Keys(cell)
@@ -388,7 +388,7 @@ class Ros2BagRecorder:
     def write(self, key: str, payload: bytes, log_time_ns: int) -> None:
         from types import SimpleNamespace
 
-        from service.codec import decode_camera_info, decode_camera_pose, decode_estimate
+        from posefuse.service.codec import decode_camera_info, decode_camera_pose, decode_estimate
 
         store = typestore()
         T = store.types

@@ -19,7 +19,7 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 
 class Settings(BaseSettings):
@@ -139,7 +139,7 @@ class Settings(BaseSettings):
 
 def sync_config(settings: Settings):
     """The FrameSynchronizer configuration of these settings."""
-    from service.sync import SyncConfig
+    from posefuse.service.sync import SyncConfig
 
     return SyncConfig(
         image_queue=settings.image_queue,
@@ -156,7 +156,7 @@ def sync_config(settings: Settings):
 
 def ingest_config(settings: Settings):
     """The FairIngest configuration of these settings."""
-    from service.ingest import IngestConfig
+    from posefuse.service.ingest import IngestConfig
 
     return IngestConfig(
         images_per_camera=settings.ingest_images,

@@ -45,8 +45,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from estimator.camera import Camera
-from service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
+from posefuse.estimator.camera import Camera
+from posefuse.service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
 
 
 @dataclass(frozen=True, eq=False)

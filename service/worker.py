@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate
-from service.sync import SyncedFrame
+from posefuse.estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate
+from posefuse.service.sync import SyncedFrame
 
 
 @dataclass
@@ -113,7 +113,7 @@ class EstimatorWorker:
         """The tracks (and held detections) as next-best-view inputs, and the appearance index
         of each of their classes with a rotation mixture (taken under the lock; the scoring
         itself runs outside it)."""
-        from estimator.nbv import appearance_index, tracks_for_nbv
+        from posefuse.estimator.nbv import appearance_index, tracks_for_nbv
 
         with self._lock:
             tracks = tracks_for_nbv(self.estimator, max_components)
@@ -127,7 +127,7 @@ class EstimatorWorker:
 
     def nbv_tracks(self) -> list:
         """The tracks as next-best-view inputs, without the appearance indices (cheap)."""
-        from estimator.nbv import tracks_for_nbv
+        from posefuse.estimator.nbv import tracks_for_nbv
 
         with self._lock:
             return tracks_for_nbv(self.estimator)
@@ -156,7 +156,7 @@ class EstimatorWorker:
 
 def make_detector(settings, catalog):
     """The front end of the settings: the ONNX network of ``settings.model``."""
-    from estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.frontend.network import NetworkFrontend
 
     network = NetworkFrontend(settings.model, catalog, threads=settings.onnx_threads)
     return lambda image, stamp_ns: network.detect(image, stamp_seed=stamp_ns)

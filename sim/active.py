@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estimator.evaluation import error_matrix, match_estimates
-from estimator.nbv import (
+from posefuse.estimator.evaluation import error_matrix, match_estimates
+from posefuse.estimator.nbv import (
     BinRegion,
     CandidateView,
     NbvConfig,
@@ -34,7 +34,7 @@ from estimator.nbv import (
     score_candidates,
     tracks_for_nbv,
 )
-from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, ObjectEstimate
+from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, ObjectEstimate
 
 POLICIES = ("nbv", "random", "sweep")
 MIN_VISIB = 0.75
@@ -88,8 +88,8 @@ class RenderedScene(ViewSource):
     hemisphere over the bin, rendered when first asked for."""
 
     def __init__(self, catalog, scene, spec, detect: Callable, config: ActiveConfig, seed: int):
-        from estimator.render import Renderer
-        from sim.synth import BIN_ID, _part_material
+        from posefuse.estimator.render import Renderer
+        from posefuse.sim.synth import BIN_ID, _part_material
 
         self.catalog = catalog
         self.scene = scene
@@ -112,7 +112,7 @@ class RenderedScene(ViewSource):
         self._visib: dict[int, np.ndarray] = {}
 
     def _render(self, k: int) -> None:
-        from sim.sensor import SensorModel, apply_rgb
+        from posefuse.sim.sensor import SensorModel, apply_rgb
 
         c = self.candidates[k]
         res = self.renderer.render(c.camera, c.T_world_cam, self.scene.lighting)
@@ -205,7 +205,7 @@ def run_policy(
     on_step: Callable[[ActiveStep], None] | None = None,
 ) -> ActiveRun:
     """Take views of ``source`` as ``policy`` chooses and fuse them (module docstring)."""
-    from estimator.nbv import needs_view
+    from posefuse.estimator.nbv import needs_view
 
     cfg = config or ActiveConfig()
     if policy not in POLICIES:

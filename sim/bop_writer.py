@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimator.camera import Camera
-from estimator.objects import Catalog, write_catalog
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.objects import Catalog, write_catalog
 
 DEPTH_SCALE = 0.1  # BOP: depth_mm = png_value * depth_scale
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]

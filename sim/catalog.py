@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from estimator.objects import Catalog, make_model
+from posefuse.estimator.objects import Catalog, make_model
 
 
 def robi_like_catalog() -> Catalog:
     """The five procedural parts as obj_ids 1..5, in metres, with their symmetries detected."""
-    from sim.parts import PARTS, build_part
+    from posefuse.sim.parts import PARTS, build_part
 
     models = []
     for obj_id, (name, _) in enumerate(PARTS, start=1):

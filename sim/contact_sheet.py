@@ -12,11 +12,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimator.camera import Camera
-from estimator.objects import ObjectModel
-from estimator.render import DEFAULT_LIGHTING, Renderer
-from estimator.symmetry import SymmetryReport, _surface_moments
-from estimator.templates import look_at_rotation
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.objects import ObjectModel
+from posefuse.estimator.render import DEFAULT_LIGHTING, Renderer
+from posefuse.estimator.symmetry import SymmetryReport, _surface_moments
+from posefuse.estimator.templates import look_at_rotation
 
 PANEL = 320  # pixels per render
 TEXT_WIDTH = 560

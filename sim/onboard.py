@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.errors import PosefuseError
-from estimator.objects import Catalog, load_mesh, make_model, mesh_diameter, write_catalog
-from estimator.symmetry import detect_symmetries, symmetry_from_spec
+from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.objects import Catalog, load_mesh, make_model, mesh_diameter, write_catalog
+from posefuse.estimator.symmetry import detect_symmetries, symmetry_from_spec
 
 MANIFEST = "parts.json"
 MANIFEST_VERSION = 1
@@ -140,8 +140,8 @@ def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Cat
 
 def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print) -> dict:
     """Run every stage; returns the manifest written to ``out/parts.json``."""
-    from estimator.templates import build_template_banks
-    from sim.contact_sheet import write_contact_sheet
+    from posefuse.estimator.templates import build_template_banks
+    from posefuse.sim.contact_sheet import write_contact_sheet
 
     if not paths:
         raise PosefuseError("onboard: give at least one mesh file")
@@ -217,7 +217,7 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
 
 def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:
-    from sim.train import TrainConfig, train
+    from posefuse.sim.train import TrainConfig, train
 
     if config.steps is not None:  # a fixed amount of work: no clock decides anything
         return train(
@@ -236,7 +236,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 deadline=None,
             ),
         )
-    from sim.train import TRAIN_SEED_BASE, profile_of, render_scene
+    from posefuse.sim.train import TRAIN_SEED_BASE, profile_of, render_scene
 
     # A pilot scene tells how long a view takes to render here (both profiles alternate).
     t0 = time.time()
@@ -269,14 +269,14 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
 
 def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) -> dict:
     """Front-end recall/precision and ADD-sym at 4 and 8 views on held-out renders."""
-    from estimator.dataset import load_dataset
-    from estimator.evaluation import evaluate
-    from estimator.frontend.metrics import score_frontend
-    from estimator.frontend.network import NetworkFrontend
-    from estimator.run_dataset import LabelledNetworkFrontend, run_dataset
-    from estimator.tracker import MultiViewEstimator
-    from sim.scenes import PROFILES
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.evaluation import evaluate
+    from posefuse.estimator.frontend.metrics import score_frontend
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.run_dataset import LabelledNetworkFrontend, run_dataset
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.sim.scenes import PROFILES
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     figures = {}
     for k, profile in enumerate(("mixed", "robi")):

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimator.camera import Camera
+from posefuse.estimator.camera import Camera
 
 
 def _colour(k: int) -> tuple[int, int, int]:
@@ -114,7 +114,7 @@ def frontend_overlay(
 
     raw_output: (C + 3, h, w) network output; detections: list of Detection; card: ModelCard.
     """
-    from estimator.frontend.network import output_to_image
+    from posefuse.estimator.frontend.network import output_to_image
 
     if getattr(card, "kind", "center_voting") == "two_stage":
         return _two_stage_overlay(image_rgb, detections, card, true_centers)

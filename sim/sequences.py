@@ -13,11 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.camera import Camera
-from estimator.frontend.detection import Detection
-from estimator.objects import Catalog
-from estimator.tracker import Frame
-from sim.scenes import REALSENSE_1280x720, SceneSpec, make_scene
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.objects import Catalog
+from posefuse.estimator.tracker import Frame
+from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec, make_scene
 
 
 @dataclass(frozen=True, eq=False)

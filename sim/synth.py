@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from estimator.camera import Camera
-from estimator.geometry import invert
-from estimator.objects import Catalog
-from estimator.render import Renderer
-from sim.bop_writer import SceneWriter, write_dataset_header
-from sim.scenes import REALSENSE_1280x720, Scene, SceneSpec, make_scene
-from sim.sensor import SensorModel, apply_depth, apply_rgb
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.geometry import invert
+from posefuse.estimator.objects import Catalog
+from posefuse.estimator.render import Renderer
+from posefuse.sim.bop_writer import SceneWriter, write_dataset_header
+from posefuse.sim.scenes import REALSENSE_1280x720, Scene, SceneSpec, make_scene
+from posefuse.sim.sensor import SensorModel, apply_depth, apply_rgb
 
 BIN_ID = 10_000  # instance id of the bin in renders (parts are 0..n-1)
 
@@ -71,7 +71,7 @@ def render_scene_views(
 
 
 def _part_material(catalog: Catalog, obj_id: int):
-    from estimator.render import CHROME, METAL
+    from posefuse.estimator.render import CHROME, METAL
 
     # Screws are chromed in ROBI; the other parts are bare machined metal.
     return CHROME if "screw" in catalog[obj_id].name else METAL

@@ -29,17 +29,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
-from scipy.optimize import linear_sum_assignment
-
-from estimator.dataset import load_dataset
-from estimator.frontend.metrics import score_frontend
-from estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
-from estimator.objects import load_catalog
-from sim.scenes import REALSENSE_1280x720
-from sim.train_data import RenderSpec, TrainingSet, profile_of, render_scene, render_training_set
-from sim.train_targets import (
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.frontend.metrics import score_frontend
+from posefuse.estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
+from posefuse.estimator.objects import load_catalog
+from posefuse.sim.scenes import REALSENSE_1280x720
+from posefuse.sim.train_data import (
+    RenderSpec,
+    TrainingSet,
+    profile_of,
+    render_scene,
+    render_training_set,
+)
+from posefuse.sim.train_targets import (
     CROP_STRIDE,
     DET_STRIDE,
     MIN_TARGET_VISIB,
@@ -109,7 +114,7 @@ class _Nets:
     def __init__(self, n_classes: int, config: TrainConfig):
         import torch
 
-        from sim.net import BoxDetectorNet, CropVotingNet
+        from posefuse.sim.net import BoxDetectorNet, CropVotingNet
 
         torch.manual_seed(config.seed)
         self.torch = torch

@@ -32,11 +32,11 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from estimator.objects import Catalog, load_catalog
-from estimator.render import CHROME, METAL, Renderer
-from sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
-from sim.sensor import SensorModel, apply_rgb
-from sim.synth import BIN_ID, scene_seed
+from posefuse.estimator.objects import Catalog, load_catalog
+from posefuse.estimator.render import CHROME, METAL, Renderer
+from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
+from posefuse.sim.sensor import SensorModel, apply_rgb
+from posefuse.sim.synth import BIN_ID, scene_seed
 
 FULL = REALSENSE_1280x720
 INSTANCE_COLUMNS = (
@@ -210,7 +210,7 @@ def render_training_set(
 ) -> TrainingSet:
     """The training set of ``spec`` under ``root``, rendered unless it is there already
     (complete sets only: ``meta.json`` is written last)."""
-    from estimator.frontend.network import catalog_hash
+    from posefuse.estimator.frontend.network import catalog_hash
 
     # a set belongs to its catalog: the same spec of another catalog is another set
     folder = Path(root) / f"{catalog_hash(_cached_catalog(str(catalog_dir)))[:8]}_{spec.key()}"

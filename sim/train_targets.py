@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.crops import crop_transform, warp_crop
 
 DET_STRIDE = 4
 CROP_STRIDE = 4

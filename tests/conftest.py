@@ -6,11 +6,11 @@ import tempfile
 import numpy as np
 import pytest
 
-from estimator.camera import Camera
-from estimator.objects import load_catalog
-from service.resources import DEFAULT_CATALOG
-from sim.scenes import SceneSpec
-from sim.synth import SynthConfig, generate_dataset
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.objects import load_catalog
+from posefuse.service.resources import DEFAULT_CATALOG
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.synth import SynthConfig, generate_dataset
 
 # one template cache for the whole test session, never the user's
 os.environ["POSEFUSE_CACHE"] = tempfile.mkdtemp(prefix="posefuse-test-cache-")
@@ -44,7 +44,7 @@ def small_dataset_root(tmp_path_factory, robi_catalog):
 @pytest.fixture(scope="session")
 def default_banks(robi_catalog, tmp_path_factory):
     """Template banks of the committed catalog at the default parameters (~6 s to build)."""
-    from estimator.templates import build_template_banks
+    from posefuse.estimator.templates import build_template_banks
 
     # the session's POSEFUSE_CACHE, so commands run by the tests find them too
     return build_template_banks([robi_catalog[k] for k in robi_catalog])
@@ -56,8 +56,8 @@ FULL_RES_VIEWS = 4
 @pytest.fixture(scope="session")
 def full_res_dataset(tmp_path_factory, robi_catalog):
     """One full-resolution bin scene of 6-8 parts seen from FULL_RES_VIEWS views."""
-    from sim.scenes import SceneSpec
-    from sim.synth import SynthConfig, generate_dataset
+    from posefuse.sim.scenes import SceneSpec
+    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     root = tmp_path_factory.mktemp("full") / "bin"
     config = SynthConfig(

@@ -9,7 +9,7 @@ import urllib.request
 import cv2
 import numpy as np
 
-from service.codec import encode_camera_info, encode_camera_pose, encode_image
+from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
 
 
 def free_port() -> int:
@@ -35,7 +35,8 @@ class ServeProcess:
         self.zenoh_port, self.http_port = free_port(), free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
         self.base = f"http://127.0.0.1:{self.http_port}"
-        command = [sys.executable, "-m", "cli", "serve", "--http-port", str(self.http_port)]
+        command = [sys.executable, "-m", "posefuse.cli", "serve"]
+        command += ["--http-port", str(self.http_port)]
         if "--listen" not in args and "--mode" not in args:
             command += ["--listen", self.endpoint]
         self.log = open(os.devnull, "w")
@@ -168,7 +169,7 @@ class FakeCamera:
 
     def info(self, stamp: int = 0) -> None:
         """Publish the camera info, and answer the daemon's requests for it from now on."""
-        from clients.camera import InfoServer
+        from posefuse.clients.camera import InfoServer
 
         payload = encode_camera_info(stamp, self.cam_id, _camera())
         if self.info_server is None:
@@ -220,6 +221,6 @@ class FakeCamera:
 def _camera():
     import numpy as np
 
-    from estimator.camera import Camera
+    from posefuse.estimator.camera import Camera
 
     return Camera(np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]]), 1280, 720)

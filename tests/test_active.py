@@ -7,10 +7,10 @@ import sys
 import numpy as np
 import pytest
 
-from estimator.dataset import load_dataset
-from estimator.frontend.oracle import OracleConfig, OracleFrontend
-from estimator.tracker import MultiViewEstimator
-from sim.active import ActiveConfig, RecordedScene, run_policy, score_steps
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.sim.active import ActiveConfig, RecordedScene, run_policy, score_steps
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_run_active_command(tmp_path):
         [
             sys.executable,
             "-m",
-            "cli",
+            "posefuse.cli",
             "run-active",
             "--profile",
             "robi",
@@ -76,7 +76,7 @@ def test_run_active_command(tmp_path):
     assert len(report["views"]) == 2 and report["views"][1]["score"] is not None
     assert report["views"][0]["candidate"] == 0
     bad = subprocess.run(
-        [sys.executable, "-m", "cli", "run-active", "--profile", "robi", "--budget", "0"],
+        [sys.executable, "-m", "posefuse.cli", "run-active", "--profile", "robi", "--budget", "0"],
         capture_output=True,
         text=True,
         timeout=120,

@@ -5,14 +5,14 @@ import json
 import pytest
 from fastapi.testclient import TestClient
 
-from estimator.tracker import MultiViewEstimator
-from service.api import create_app
-from service.daemon import Daemon
-from service.settings import Settings
-from service.sync import SyncedFrame
-from service.worker import EstimatorWorker
-from sim.scenes import SceneSpec
-from sim.sequences import make_sequence
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.api import create_app
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings
+from posefuse.service.sync import SyncedFrame
+from posefuse.service.worker import EstimatorWorker
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 
 @pytest.fixture()
@@ -144,7 +144,7 @@ def test_body_size_limit(daemon):
 
 
 def test_api_token_guards_mutating_routes(daemon):
-    from service.settings import Settings
+    from posefuse.service.settings import Settings
 
     daemon.settings = Settings(api_token="s3cret-token", protect_events=True)
     client = TestClient(create_app(daemon))
@@ -176,8 +176,8 @@ def test_every_status_code_a_route_gives_is_documented(daemon):
 
 
 def test_next_best_view(daemon):
-    from estimator.nbv import default_candidates
-    from sim.scenes import REALSENSE_1280x720 as CAM
+    from posefuse.estimator.nbv import default_candidates
+    from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
     client = TestClient(create_app(daemon))
     # no camera info yet: candidates need their intrinsics

@@ -7,14 +7,14 @@ import schemathesis
 from hypothesis import HealthCheck, settings
 from schemathesis.specs.openapi.checks import positive_data_acceptance
 
-from estimator.tracker import MultiViewEstimator
-from service.api import create_app
-from service.daemon import Daemon
-from service.settings import Settings
-from service.sync import SyncedFrame
-from service.worker import EstimatorWorker
-from sim.scenes import SceneSpec
-from sim.sequences import make_sequence
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.api import create_app
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings
+from posefuse.service.sync import SyncedFrame
+from posefuse.service.worker import EstimatorWorker
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 
 @pytest.fixture(scope="module", params=[None, "t0ken"], ids=["open", "token"])

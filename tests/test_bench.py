@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import Candidate, ClassGeometry, fuse_candidates, refine
+from posefuse.bench.baselines import Candidate, ClassGeometry, fuse_candidates, refine
 
 K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
 
@@ -88,7 +88,7 @@ def test_fusion_keeps_instances_apart_and_merges_views(robi_catalog):
 
 
 def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_banks):
-    from cli.main import main
+    from posefuse.cli.main import main
 
     out = tmp_path / "benchmarks.md"
     code = main(["bench", "--dataset", str(tmp_path / "bin"), "--quick", "--out", str(out)])
@@ -123,8 +123,8 @@ def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_bank
 
 
 def test_the_learned_front_end_needs_full_resolution_images(tmp_path, capsys):
-    from bench.paper_tables import make_frontend
-    from cli.main import main
+    from posefuse.bench.paper_tables import make_frontend
+    from posefuse.cli.main import main
 
     with pytest.raises(ValueError, match="'oracle' or 'network'"):
         make_frontend(None, "magic")

@@ -5,12 +5,12 @@ import sys
 
 import pytest
 
-from cli.main import main
+from posefuse.cli.main import main
 
 
 def run_cli(*args):
     proc = subprocess.run(
-        [sys.executable, "-m", "cli", *args], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "posefuse.cli", *args], capture_output=True, text=True, timeout=120
     )
     return proc.returncode, proc.stdout, proc.stderr
 
@@ -54,7 +54,7 @@ def test_synth_rejects_bad_arguments(tmp_path, capsys, args, message):
 
 
 def test_replay_needs_a_mode_and_lockstep_needs_the_api(tmp_path, capsys):
-    from service.resources import DEFAULT_RECORDING
+    from posefuse.service.resources import DEFAULT_RECORDING
 
     assert main(["replay", DEFAULT_RECORDING]) == 2
     assert "--offline" in capsys.readouterr().err
@@ -78,7 +78,7 @@ def _commands():
     """(name, parser) of every sub-command, the entry points' included."""
     import argparse
 
-    from cli.main import build_parser
+    from posefuse.cli.main import build_parser
 
     parser = build_parser()
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
@@ -90,7 +90,7 @@ def test_service_imports_no_layer_above_it():
     import ast
     from pathlib import Path
 
-    import service
+    import posefuse.service as service
 
     above = {"bench", "clients", "cli"}
     offences = []
@@ -103,13 +103,15 @@ def test_service_imports_no_layer_above_it():
             else:
                 continue
             offences += [
-                f"{path.name}:{node.lineno} {n}" for n in names if n.split(".")[0] in above
+                f"{path.name}:{node.lineno} {n}"
+                for n in names
+                if n.removeprefix("posefuse.").split(".")[0] in above
             ]
     assert not offences
 
 
 def test_every_option_of_every_command_has_help_and_shows_its_default():
-    from cli.common import HelpFormatter
+    from posefuse.cli.common import HelpFormatter
 
     commands = _commands()
     assert {"catalog", "synth", "run-dataset", "quickstart", "train", "serve", "objects"} <= set(
@@ -130,7 +132,7 @@ def test_every_option_of_every_command_has_help_and_shows_its_default():
 
 
 def test_outputs_go_under_runs_unless_told_otherwise():
-    from cli.main import build_parser
+    from posefuse.cli.main import build_parser
 
     parser = build_parser()
     defaults = {
@@ -150,7 +152,7 @@ def test_outputs_go_under_runs_unless_told_otherwise():
 def test_plugin_command_groups_come_after_the_built_in_ones_by_name(monkeypatch, capsys):
     from importlib.metadata import EntryPoint
 
-    import cli.main
+    import posefuse.cli.main
 
     def register_zz(sub):
         sub.add_parser("zz-extra", help="a plugin's command").set_defaults(func=lambda a: 7)
@@ -159,7 +161,7 @@ def test_plugin_command_groups_come_after_the_built_in_ones_by_name(monkeypatch,
         sub.add_parser("aa-extra", help="another").set_defaults(func=lambda a: 0)
 
     monkeypatch.setattr(
-        cli.main,
+        posefuse.cli.main,
         "entry_points",
         lambda group: [
             EntryPoint("zz", f"{__name__}:_never_used", group),
@@ -172,7 +174,7 @@ def test_plugin_command_groups_come_after_the_built_in_ones_by_name(monkeypatch,
     names = list(_commands())
     assert names.index("make-demo") < names.index("aa-extra") < names.index("zz-extra")
     assert "broken" in capsys.readouterr().err
-    assert cli.main.main(["zz-extra"]) == 7
+    assert posefuse.cli.main.main(["zz-extra"]) == 7
 
 
 def _fail():
@@ -180,7 +182,7 @@ def _fail():
 
 
 def test_objects_table_names_its_units():
-    from clients.query import table
+    from posefuse.clients.query import table
 
     estimate = {
         "object_id": "gear-1",
@@ -224,8 +226,8 @@ def test_a_busy_http_port_is_refused_before_anything_starts(command, capsys):
 
 
 def test_http_port_zero_picks_a_free_port():
-    from cli.common import claim_http_port
-    from service.settings import Settings
+    from posefuse.cli.common import claim_http_port
+    from posefuse.service.settings import Settings
 
     settings = claim_http_port(Settings(http_port=0))
     assert settings.http_port > 0

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.codec import (
+from posefuse.service.codec import (
     DecodeError,
     decode_camera_info,
     decode_camera_pose,
@@ -18,7 +18,7 @@ from service.codec import (
     encode_image,
     encode_reset,
 )
-from sim.scenes import REALSENSE_1280x720 as CAM
+from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 
 def _pack(d):
@@ -110,8 +110,8 @@ def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
 
     import cv2
 
-    from bench.bombs import image_message, jpeg_bomb, png_bomb
-    from service.codec import compressed_image_size
+    from posefuse.bench.bombs import image_message, jpeg_bomb, png_bomb
+    from posefuse.service.codec import compressed_image_size
 
     decoded = []
     real_imdecode = cv2.imdecode
@@ -151,7 +151,7 @@ def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
 def test_compressed_image_size_reads_real_headers():
     import cv2
 
-    from service.codec import compressed_image_size
+    from posefuse.service.codec import compressed_image_size
 
     image = np.zeros((37, 53, 3), np.uint8)
     for ext, encoding in ((".png", "png"), (".jpg", "jpeg")):
@@ -176,8 +176,8 @@ def test_sequence_numbers_round_trip():
 def test_nbv_request_round_trip_and_refusals():
     import msgpack
 
-    from service.codec import DecodeError, decode_nbv_request, encode_nbv_request
-    from sim.scenes import REALSENSE_1280x720 as CAM
+    from posefuse.service.codec import DecodeError, decode_nbv_request, encode_nbv_request
+    from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.0, 0.7]
@@ -226,8 +226,8 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
     import cv2
     from hostile import png_many_chunks, progressive_scan_bomb
 
-    from bench.bombs import image_message
-    from service.codec import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
+    from posefuse.bench.bombs import image_message
+    from posefuse.service.codec import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
 
     def refused(stream, encoding, size):
         with pytest.raises(DecodeError) as info:
@@ -257,7 +257,7 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
 def test_what_cameras_and_encoders_write_passes_the_structure_checks():
     import cv2
 
-    from service.codec import check_decode_cost
+    from posefuse.service.codec import check_decode_cost
 
     rng = np.random.default_rng(1)
     for h, w in ((1, 1), (37, 53), (720, 1280), (2160, 3840)):

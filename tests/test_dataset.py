@@ -6,8 +6,8 @@ import shutil
 import numpy as np
 import pytest
 
-from estimator.dataset import load_dataset
-from estimator.errors import DatasetError
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.errors import DatasetError
 
 
 def test_views_and_poses(small_dataset_root):

@@ -7,14 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator.objects import load_catalog
-from estimator.tracker import MultiViewEstimator
-from service.foxglove import FoxgloveMirror
-from service.recording import Recorder, read_messages
-from service.replay import replay_offline, write_estimates_json
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
-from service.settings import Settings
-from service.worker import EstimatorWorker, make_detector
+from posefuse.estimator.objects import load_catalog
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.foxglove import FoxgloveMirror
+from posefuse.service.recording import Recorder, read_messages
+from posefuse.service.replay import replay_offline, write_estimates_json
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
+from posefuse.service.settings import Settings
+from posefuse.service.worker import EstimatorWorker, make_detector
 
 EXPECTED = Path(DEFAULT_RECORDING).with_suffix(".expected.json")
 # the shipped model the expected file was made with (sha256 of models/robi_like.onnx): another
@@ -29,7 +29,7 @@ MIN_CORRECT = 12
 def _truth() -> list[list[tuple[int, np.ndarray]]]:
     """Each segment's true parts (obj_id, T_world_obj), from the recording's own ground truth:
     a segment ends at each reset, as the replay's do."""
-    from service.codec import decode_groundtruth
+    from posefuse.service.codec import decode_groundtruth
 
     segments, current = [], None
     for m in read_messages(DEFAULT_RECORDING):
@@ -49,7 +49,7 @@ def _score(segments: list[list[dict]]) -> tuple[int, int, float]:
     its class, greedy by confidence, one-to-one."""
     from scipy.spatial.transform import Rotation
 
-    from estimator import pose_error
+    from posefuse.estimator import pose_error
 
     catalog = load_catalog(DEFAULT_CATALOG)
     truth = _truth()
@@ -153,7 +153,7 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
 
 @pytest.mark.parametrize("cut", [0.3, 0.7])
 def test_truncated_recording_gives_the_frames_before_the_damage(tmp_path, cut, default_banks):
-    from cli.main import main
+    from posefuse.cli.main import main
 
     data = Path(DEFAULT_RECORDING).read_bytes()
     damaged = tmp_path / "cut.mcap"
@@ -168,7 +168,7 @@ def test_live_lockstep_replay_over_zenoh_equals_offline(default_banks, capsys):
     """posefuse demo's path: daemon + API + replay through Zenoh on loopback, in lockstep."""
     import socket
 
-    from service.demo import run_demo
+    from posefuse.service.demo import run_demo
 
     ports = []
     for _ in range(2):

@@ -10,12 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from cli.main import main
-from estimator import pose_error
-from estimator.dataset import load_dataset
-from estimator.errors import ResultsError
-from estimator.eval_points import derive_eval_points
-from estimator.evaluation import (
+from posefuse.cli.main import main
+from posefuse.estimator import pose_error
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.errors import ResultsError
+from posefuse.estimator.eval_points import derive_eval_points
+from posefuse.estimator.evaluation import (
     PoseResult,
     error_matrix,
     evaluate,
@@ -24,7 +24,7 @@ from estimator.evaluation import (
     read_results,
     write_results,
 )
-from estimator.objects import load_mesh
+from posefuse.estimator.objects import load_mesh
 
 # BOP toolkit figures for the committed procedural catalog, carried with the tests (copied from
 # ../shared/reference, where its README allows it); the real meshes' figures stay in ../shared
@@ -194,8 +194,8 @@ def test_continuous_symmetry_steps_as_bop():
 def test_eval_points_are_uniform_fixed_and_stored_with_the_catalog(robi_catalog, tmp_path):
     from scipy.spatial import cKDTree
 
-    from estimator.eval_points import EVAL_SPACING, eval_points_path
-    from estimator.objects import load_catalog, write_catalog
+    from posefuse.estimator.eval_points import EVAL_SPACING, eval_points_path
+    from posefuse.estimator.objects import load_catalog, write_catalog
 
     for model in robi_catalog.values():
         stored = model.stored_eval_points

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from loopback import SECOND, FakeCamera, ServeProcess, wait_until, zenoh_peer
 
-from service.codec import encode_image
+from posefuse.service.codec import encode_image
 
 RSS_BOUND_MB = 1024
 CELL = "faults"
@@ -129,7 +129,7 @@ def test_a_silent_camera_is_forgotten(served):
 
 
 def test_bombs_and_huge_frames_are_refused_without_decoding(served):
-    from bench.bombs import image_message, jpeg_bomb, png_bomb
+    from posefuse.bench.bombs import image_message, jpeg_bomb, png_bomb
 
     daemon, session = served
     before = daemon.stats()["decode_errors_by_reason"]

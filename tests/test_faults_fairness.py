@@ -13,8 +13,8 @@ import pytest
 from hostile import progressive_scan_bomb
 from loopback import SECOND, FakeCamera, ServeProcess, wait_until, zenoh_peer
 
-from bench.bombs import image_message
-from service.codec import encode_camera_pose
+from posefuse.bench.bombs import image_message
+from posefuse.service.codec import encode_camera_pose
 
 CELL = "fair"
 DECODE_THREADS = 2  # the default

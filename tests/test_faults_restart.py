@@ -15,8 +15,8 @@ from loopback import (
     zenoh_peer,
 )
 
-from clients.camera import InfoServer, scene_messages
-from estimator.dataset import load_dataset
+from posefuse.clients.camera import InfoServer, scene_messages
+from posefuse.estimator.dataset import load_dataset
 
 RSS_BOUND_MB = 1024
 

@@ -10,8 +10,8 @@ import time
 from loopback import ServeProcess, wait_until, zenoh_peer
 from test_faults_restart import _put_all
 
-from clients.camera import InfoServer, scene_messages
-from estimator.dataset import load_dataset
+from posefuse.clients.camera import InfoServer, scene_messages
+from posefuse.estimator.dataset import load_dataset
 
 CELL = "stops"
 ENV = {"POSEFUSE_STATE_INTERVAL_S": "3600"}

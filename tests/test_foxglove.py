@@ -10,9 +10,9 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from estimator.camera import Camera
-from estimator.tracker import ObjectEstimate
-from service.codec import (
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.tracker import ObjectEstimate
+from posefuse.service.codec import (
     encode_camera_info,
     encode_camera_pose,
     encode_estimate,
@@ -20,8 +20,8 @@ from service.codec import (
     encode_image,
     encode_reset,
 )
-from service.foxglove import DISPLAY_FACES, FoxgloveMirror
-from service.keys import Keys
+from posefuse.service.foxglove import DISPLAY_FACES, FoxgloveMirror
+from posefuse.service.keys import Keys
 
 KEYS = Keys("posefuse")
 

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.errors import PosefuseError
-from estimator.frontend.network import ModelError, NetworkFrontend, load_card
-from estimator.frontend.voting import (
+from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.frontend.network import ModelError, NetworkFrontend, load_card
+from posefuse.estimator.frontend.voting import (
     VotingConfig,
     _least_squares_center,
     _percentile_90,
@@ -56,8 +56,8 @@ def test_voting_ignores_too_few_pixels():
 @pytest.fixture(scope="module")
 def tiny_model(robi_catalog, tmp_path_factory):
     pytest.importorskip("torch", reason="the training smoke test needs the train extra")
-    from service.resources import DEFAULT_CATALOG
-    from sim.train import TrainConfig, train
+    from posefuse.service.resources import DEFAULT_CATALOG
+    from posefuse.sim.train import TrainConfig, train
 
     path = tmp_path_factory.mktemp("model") / "tiny.onnx"
     config = TrainConfig(

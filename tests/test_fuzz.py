@@ -9,15 +9,15 @@ import msgpack
 import numpy as np
 import pytest
 
-from estimator.tracker import MultiViewEstimator
-from service.codec import encode_camera_info, encode_camera_pose
-from service.daemon import Daemon
-from service.settings import Settings
-from service.sync import SyncedFrame
-from service.worker import EstimatorWorker
-from sim.scenes import REALSENSE_1280x720 as CAM
-from sim.scenes import SceneSpec
-from sim.sequences import make_sequence
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.codec import encode_camera_info, encode_camera_pose
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings
+from posefuse.service.sync import SyncedFrame
+from posefuse.service.worker import EstimatorWorker
+from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 N = 10_000
 # the generator itself makes a thousand 17 MB payloads (the allocator keeps some); one decoded
@@ -43,7 +43,7 @@ _BOMBS = {}
 
 
 def _bomb(rng):
-    from bench.bombs import image_message, jpeg_bomb, png_bomb
+    from posefuse.bench.bombs import image_message, jpeg_bomb, png_bomb
 
     if not _BOMBS:
         _BOMBS["png"], _BOMBS["jpeg"] = png_bomb(), jpeg_bomb()

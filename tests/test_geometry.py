@@ -10,7 +10,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from estimator import geometry as g
+from posefuse.estimator import geometry as g
 
 PI = np.pi
 FAST = settings(deadline=None, max_examples=60)

@@ -3,7 +3,7 @@ count and bytes, a flooding camera paying for its own flood."""
 
 import threading
 
-from service.ingest import FairIngest, IngestConfig
+from posefuse.service.ingest import FairIngest, IngestConfig
 
 
 def _served(ingest: FairIngest) -> list[tuple[str, str, object]]:

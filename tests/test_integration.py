@@ -16,12 +16,12 @@ import msgpack
 import numpy as np
 from loopback import free_port, get_json, wait_until
 
-from clients.camera import scene_messages
-from estimator.dataset import load_dataset
-from estimator.tracker import MultiViewEstimator
-from service.codec import estimate_to_dict
-from service.resources import DEFAULT_MODEL
-from service.worker import EstimatorWorker
+from posefuse.clients.camera import scene_messages
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.codec import estimate_to_dict
+from posefuse.service.resources import DEFAULT_MODEL
+from posefuse.service.worker import EstimatorWorker
 
 N_VIEWS = 4
 
@@ -39,8 +39,8 @@ def _post(url, body):
 
 def _offline(dataset, messages):
     """The same messages through the daemon's decoder, synchroniser and worker, in order."""
-    from estimator.frontend.network import NetworkFrontend
-    from service.replay import replay_offline
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.service.replay import replay_offline
 
     network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
     worker = EstimatorWorker(
@@ -56,7 +56,7 @@ def _assert_found_where_the_parts_are(objects, dataset):
     part of their class, and some are right to ADD-sym < 0.1 d (the learned front end's floor)."""
     from scipy.spatial.transform import Rotation
 
-    from estimator import pose_error
+    from posefuse.estimator import pose_error
 
     scene = dataset.scene(0)
     truth = [(g.obj_id, v.T_world_cam @ g.T_cam_obj) for v in scene.views() for g in v.gts]
@@ -89,7 +89,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
         [
             sys.executable,
             "-m",
-            "cli",
+            "posefuse.cli",
             "serve",
             "--listen",
             f"tcp/127.0.0.1:{zport}",
@@ -129,7 +129,7 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
                 [
                     sys.executable,
                     "-m",
-                    "cli",
+                    "posefuse.cli",
                     "publish",
                     "--dataset",
                     str(full_res_dataset),

@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 from loopback import wait_until
 
-from estimator.objects import load_catalog
-from estimator.tracker import MultiViewEstimator, ObjectEstimate
-from service.codec import encode_camera_pose, encode_estimate
-from service.foxglove import FoxgloveMirror
-from service.keys import Keys
-from service.recording import Recorder, read_messages
-from service.replay import replay_offline
-from service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
-from service.settings import Settings, zenoh_config
-from service.worker import EstimatorWorker, make_detector
+from posefuse.estimator.objects import load_catalog
+from posefuse.estimator.tracker import MultiViewEstimator, ObjectEstimate
+from posefuse.service.codec import encode_camera_pose, encode_estimate
+from posefuse.service.foxglove import FoxgloveMirror
+from posefuse.service.keys import Keys
+from posefuse.service.recording import Recorder, read_messages
+from posefuse.service.replay import replay_offline
+from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
+from posefuse.service.settings import Settings, zenoh_config
+from posefuse.service.worker import EstimatorWorker, make_detector
 
 JS = Path(__file__).parent / "js"
 FOXGLOVE_SCHEMAS = {
@@ -158,7 +158,7 @@ def test_record_command_writes_raw_and_foxglove_channels(mcap_check, tmp_path):
 
     port = _free_port()
     out = tmp_path / "cell.mcap"
-    command = [sys.executable, "-m", "cli", "record", "--out", str(out)]
+    command = [sys.executable, "-m", "posefuse.cli", "record", "--out", str(out)]
     command += ["--listen", f"tcp/127.0.0.1:{port}"]
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     keys = Keys("posefuse")

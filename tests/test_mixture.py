@@ -5,14 +5,14 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from estimator.geometry import rotation_angle, so3_exp
-from estimator.mixture import (
+from posefuse.estimator.geometry import rotation_angle, so3_exp
+from posefuse.estimator.mixture import (
     MixtureConfig,
     RotationMixture,
     closest_equivalent,
     closest_equivalents,
 )
-from estimator.objects import make_model
+from posefuse.estimator.objects import make_model
 
 DEG = np.pi / 180
 

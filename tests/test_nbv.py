@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.geometry import random_rotations, so3_exp
-from estimator.mixture import closest_equivalent
-from estimator.nbv import (
+from posefuse.estimator.geometry import random_rotations, so3_exp
+from posefuse.estimator.mixture import closest_equivalent
+from posefuse.estimator.nbv import (
     BinRegion,
     CandidateView,
     NbvConfig,
@@ -19,11 +19,11 @@ from estimator.nbv import (
     score_candidates,
     tracks_for_nbv,
 )
-from estimator.render import DirectionalLight, Lighting, Renderer
-from estimator.rotation import RotationMatcher, crop_roi, ray_correction
-from estimator.templates import TEMPLATE_LIGHTS_CAM, TEMPLATE_MATERIAL
-from estimator.translation import prior_from_first_view
-from sim.scenes import REALSENSE_1280x720 as CAM
+from posefuse.estimator.render import DirectionalLight, Lighting, Renderer
+from posefuse.estimator.rotation import RotationMatcher, crop_roi, ray_correction
+from posefuse.estimator.templates import TEMPLATE_LIGHTS_CAM, TEMPLATE_MATERIAL
+from posefuse.estimator.translation import prior_from_first_view
+from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 NONE = np.zeros((0, 3, 3))
 
@@ -192,8 +192,8 @@ def test_an_occluded_or_out_of_image_part_gains_nothing():
 
 
 def test_tracks_of_an_estimator_and_the_views_they_need(robi_catalog):
-    from estimator.frontend.detection import Detection
-    from estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.estimator.frontend.detection import Detection
+    from posefuse.estimator.tracker import Frame, MultiViewEstimator
 
     est = MultiViewEstimator(robi_catalog)
     obj_id = sorted(robi_catalog)[0]

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from conftest import extra_shared
 
-from estimator.objects import load_catalog, load_mesh, mesh_diameter
-from estimator.symmetry import detect_symmetries
-from service.resources import DEFAULT_CATALOG
-from sim.catalog import robi_like_catalog
+from posefuse.estimator.objects import load_catalog, load_mesh, mesh_diameter
+from posefuse.estimator.symmetry import detect_symmetries
+from posefuse.service.resources import DEFAULT_CATALOG
+from posefuse.sim.catalog import robi_like_catalog
 
 # name -> (diameter mm, description of the detected symmetries, discrete count without identity)
 PROCEDURAL = {

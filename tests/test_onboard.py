@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from loopback import free_port, get_json
 
-from cli.main import main
+from posefuse.cli.main import main
 
 SHARED = Path(
     os.environ.get(
@@ -27,7 +27,7 @@ def _one_mesh(tmp_path) -> Path:
     real = SHARED / "bracket.stl"
     if real.is_file():
         return real
-    from sim.parts import build_part
+    from posefuse.sim.parts import build_part
 
     path = tmp_path / "bracket.stl"
     build_part("zigzag").export(path)
@@ -50,7 +50,7 @@ def _run(argv, capsys):
     ],
 )
 def test_bad_meshes_get_one_clear_message(tmp_path, capsys, case, expected):
-    from sim.parts import build_part
+    from posefuse.sim.parts import build_part
 
     if case == "missing":
         path, units = tmp_path / "nowhere.stl", "mm"
@@ -73,8 +73,8 @@ def test_bad_meshes_get_one_clear_message(tmp_path, capsys, case, expected):
 
 
 def test_an_open_mesh_is_accepted_with_a_note(tmp_path):
-    from sim.onboard import OnboardConfig, read_parts
-    from sim.parts import build_part
+    from posefuse.sim.onboard import OnboardConfig, read_parts
+    from posefuse.sim.parts import build_part
 
     mesh = build_part("zigzag")
     mesh.update_faces(list(range(1, len(mesh.faces))))  # one face removed: not watertight
@@ -89,7 +89,7 @@ def test_an_open_mesh_is_accepted_with_a_note(tmp_path):
 
 
 def test_symmetry_overrides_name_known_parts(tmp_path, capsys):
-    from sim.parts import build_part
+    from posefuse.sim.parts import build_part
 
     path = tmp_path / "screw.stl"
     build_part("chrome_screw").export(path)
@@ -131,7 +131,7 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
 
     zport, hport = free_port(), free_port()
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    serve = [sys.executable, "-m", "cli", "serve", "--parts", str(out), "--cell", "onb"]
+    serve = [sys.executable, "-m", "posefuse.cli", "serve", "--parts", str(out), "--cell", "onb"]
     serve += ["--listen", f"tcp/127.0.0.1:{zport}", "--http-port", str(hport)]
     daemon = subprocess.Popen(
         serve, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env
@@ -148,7 +148,7 @@ def test_onboard_then_serve_the_part_set(tmp_path, capsys):
             if daemon.poll() is not None or time.time() > deadline:
                 raise AssertionError(f"daemon did not start:\n{daemon.stdout.read()}")
             time.sleep(0.5)
-        publish = [sys.executable, "-m", "cli", "publish", "--dataset"]
+        publish = [sys.executable, "-m", "posefuse.cli", "publish", "--dataset"]
         publish += [str(out / "validation" / "mixed"), "--scene", "0", "--rate", "4"]
         publish += ["--cell", "onb", "--connect", f"tcp/127.0.0.1:{zport}"]
         publish += ["--listen", f"tcp/127.0.0.1:{free_port()}"]

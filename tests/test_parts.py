@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sim.parts import PARTS, build_part
+from posefuse.sim.parts import PARTS, build_part
 
 
 @pytest.mark.parametrize("name", [n for n, _ in PARTS])

@@ -12,9 +12,9 @@ import time
 import numpy as np
 from loopback import free_port, wait_until, zenoh_peer
 
-from service.codec import encode_camera_pose, encode_image
-from service.keys import Keys
-from service.recording import read_messages
+from posefuse.service.codec import encode_camera_pose, encode_image
+from posefuse.service.keys import Keys
+from posefuse.service.recording import read_messages
 
 KEYS = Keys("posefuse")
 
@@ -45,7 +45,7 @@ def _publish(endpoint: str, n_images: int, size: int = 200) -> None:
 def test_sigterm_finishes_the_file(tmp_path):
     port = free_port()
     out = tmp_path / "cell.mcap"
-    command = [sys.executable, "-m", "cli", "record", "--out", str(out)]
+    command = [sys.executable, "-m", "posefuse.cli", "record", "--out", str(out)]
     proc = subprocess.Popen(
         [*command, "--listen", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.PIPE,
@@ -71,7 +71,7 @@ def test_a_full_disk_stops_the_recording_with_a_footer(tmp_path):
     disk.mkdir()
     script = (
         f"mount -t tmpfs -o size=2m tmpfs {disk} && "
-        f"{sys.executable} -m cli record --out {disk}/cell.mcap "
+        f"{sys.executable} -m posefuse.cli record --out {disk}/cell.mcap "
         f"--listen tcp/127.0.0.1:{port} --duration 25; rc=$?; "
         f"cp {disk}/cell.mcap {tmp_path}/cell.mcap; exit $rc"
     )

@@ -2,7 +2,7 @@
 
 import pytest
 
-from service.recording import Recorder, RecordingError, read_messages
+from posefuse.service.recording import Recorder, RecordingError, read_messages
 
 
 def _record(path, n=600):

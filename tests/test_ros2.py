@@ -13,13 +13,13 @@ from rosbags.typesys.stores.ros2_jazzy import builtin_interfaces__msg__Time as T
 from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
 from scipy.spatial.transform import Rotation
 
-from clients.camera import scene_messages
-from estimator.dataset import load_dataset
-from estimator.tracker import MultiViewEstimator
-from service import ros2
-from service.daemon import Daemon
-from service.settings import Settings
-from service.worker import EstimatorWorker, make_detector, now_ns
+from posefuse.clients.camera import scene_messages
+from posefuse.estimator.dataset import load_dataset
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service import ros2
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings
+from posefuse.service.worker import EstimatorWorker, make_detector, now_ns
 
 
 def _same_rotation(q1, q2, atol=1e-9):
@@ -254,8 +254,8 @@ def test_record_ros2_writes_a_rosbag2_that_rosbags_reads(full_res_dataset, tmp_p
     Reader opens the folder and every message deserialises to its ROS 2 type."""
     from rosbags.rosbag2 import Reader
 
-    from estimator.tracker import ObjectEstimate, RotationHypothesis
-    from service.codec import decode_camera_info, encode_estimate
+    from posefuse.estimator.tracker import ObjectEstimate, RotationHypothesis
+    from posefuse.service.codec import decode_camera_info, encode_estimate
 
     cell = "bag"
     dataset = load_dataset(full_res_dataset)

@@ -5,17 +5,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.geometry import random_rotations, rotation_angle
-from estimator.render import DirectionalLight, Lighting, Renderer
-from estimator.rotation import RotationMatcher, _best_first, crop_roi, ray_correction
-from estimator.templates import (
+from posefuse.estimator.geometry import random_rotations, rotation_angle
+from posefuse.estimator.render import DirectionalLight, Lighting, Renderer
+from posefuse.estimator.rotation import RotationMatcher, _best_first, crop_roi, ray_correction
+from posefuse.estimator.templates import (
     TEMPLATE_LIGHTS_CAM,
     TEMPLATE_MATERIAL,
     TemplateConfig,
     build_template_bank,
     template_rotations,
 )
-from sim.scenes import REALSENSE_1280x720 as CAM
+from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 COARSE = TemplateConfig(subdivisions=1, inplane_step_deg=15.0)
 
@@ -98,7 +98,7 @@ def test_matching_recovers_the_rotation_off_axis(tube, default_banks):
 
 
 def test_top_k_hypotheses_are_distinct(tube, tube_bank):
-    from estimator.rotation import RotationConfig
+    from posefuse.estimator.rotation import RotationConfig
 
     matcher = RotationMatcher(tube_bank, RotationConfig(top_k=3, nms_deg=15, min_confidence=0))
     t = np.array([0.0, 0.0, 0.7])

@@ -4,7 +4,7 @@ import csv
 
 import pytest
 
-from cli.main import main
+from posefuse.cli.main import main
 
 
 @pytest.fixture(scope="module")
@@ -64,11 +64,11 @@ def test_run_dataset_refuses_bad_settings(small_dataset_root, tmp_path, capsys):
 def test_both_steps_end_to_end_and_deterministic(small_dataset_root, default_banks):
     import numpy as np
 
-    from estimator.dataset import load_dataset
-    from estimator.evaluation import evaluate
-    from estimator.frontend.oracle import OracleConfig, OracleFrontend
-    from estimator.run_dataset import run_dataset
-    from estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.evaluation import evaluate
+    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+    from posefuse.estimator.run_dataset import run_dataset
+    from posefuse.estimator.tracker import MultiViewEstimator
 
     ds = load_dataset(small_dataset_root)
 
@@ -108,8 +108,8 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from estimator.dataset import load_dataset
-    from estimator.evaluation import PoseResult, evaluate, ground_truth_results
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.evaluation import PoseResult, evaluate, ground_truth_results
 
     ds = load_dataset(four_view_dataset)
     rng = np.random.default_rng(7)

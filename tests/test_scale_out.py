@@ -9,13 +9,13 @@ import sys
 
 from loopback import ServeProcess, free_port, get_json, start_router, wait_until
 
-from estimator.dataset import load_dataset
+from posefuse.estimator.dataset import load_dataset
 
 
 def _publish(dataset, cell: str, endpoint: str, t0_ns: int = 1_000_000_000_000):
     """``posefuse publish`` of the scene on ``cell``, a client of the router; waits for it."""
     proc = subprocess.run(
-        [sys.executable, "-m", "cli", "publish", "--dataset", str(dataset), "--cell", cell]
+        [sys.executable, "-m", "posefuse.cli", "publish", "--dataset", str(dataset), "--cell", cell]
         + ["--mode", "client", "--connect", endpoint, "--rate", "4", "--t0-ns", str(t0_ns)],
         capture_output=True,
         text=True,

@@ -12,13 +12,13 @@ import msgpack
 import pytest
 from loopback import SECOND, FakeCamera, free_port, wait_until
 
-from estimator.tracker import MultiViewEstimator
-from service.daemon import Daemon
-from service.settings import Settings, zenoh_config
-from service.sync import SyncedFrame
-from service.worker import EstimatorWorker
-from sim.scenes import SceneSpec
-from sim.sequences import make_sequence
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.service.daemon import Daemon
+from posefuse.service.settings import Settings, zenoh_config
+from posefuse.service.sync import SyncedFrame
+from posefuse.service.worker import EstimatorWorker
+from posefuse.sim.scenes import SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 CELL = "sec"
 

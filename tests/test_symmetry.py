@@ -5,8 +5,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from estimator.objects import mesh_diameter
-from estimator.symmetry import (
+from posefuse.estimator.objects import mesh_diameter
+from posefuse.estimator.symmetry import (
     ContinuousSymmetry,
     describe_symmetries,
     detect_symmetries,
@@ -180,7 +180,7 @@ def test_a_near_miss_is_flagged_not_claimed():
 
 
 def test_a_person_overrides_detection_with_a_spec():
-    from estimator.symmetry import symmetry_from_spec
+    from posefuse.estimator.symmetry import symmetry_from_spec
 
     mesh = _wheel(5)
     d = mesh_diameter(mesh)

@@ -4,9 +4,9 @@ bounded queues, re-anchoring after clock steps, silent cameras, sequence gaps.""
 import numpy as np
 import pytest
 
-from service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
-from service.sync import FrameSynchronizer, SyncConfig, interpolate_pose
-from sim.scenes import REALSENSE_1280x720 as CAM
+from posefuse.service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
+from posefuse.service.sync import FrameSynchronizer, SyncConfig, interpolate_pose
+from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 IMG = np.zeros((2, 2, 3), np.uint8)
 MS = 1_000_000

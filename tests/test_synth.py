@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from estimator.camera import Camera
-from estimator.objects import Catalog, make_model
-from sim.scenes import SceneSpec, make_scene
-from sim.synth import SynthConfig, generate_dataset
+from posefuse.estimator.camera import Camera
+from posefuse.estimator.objects import Catalog, make_model
+from posefuse.sim.scenes import SceneSpec, make_scene
+from posefuse.sim.synth import SynthConfig, generate_dataset
 
 SMALL_CAMERA = Camera(np.array([[231.0, 0, 160.0], [0, 231.0, 90.0], [0, 0, 1]]), 320, 180)
 
@@ -145,9 +145,9 @@ def test_bop_files_are_consistent(tmp_path, catalog):
 def test_robi_profile_piles_one_part_type_and_sweeps_over_the_bin(robi_catalog, tmp_path):
     import dataclasses
 
-    from cli.main import main
-    from estimator.dataset import load_dataset
-    from sim.scenes import PROFILES
+    from posefuse.cli.main import main
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.sim.scenes import PROFILES
 
     spec = PROFILES["robi"]
     assert spec.parts_per_scene == (1, 1) and spec.n_instances == (20, 40)

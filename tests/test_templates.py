@@ -4,8 +4,8 @@ built in parallel equal banks built one by one."""
 import numpy as np
 import pytest
 
-from estimator.render import Renderer
-from estimator.templates import (
+from posefuse.estimator.render import Renderer
+from posefuse.estimator.templates import (
     TEMPLATE_MATERIAL,
     TemplateConfig,
     _render_template_view,

@@ -6,12 +6,12 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from bench.translation_sequences import run_sequences
-from estimator.frontend.detection import Detection
-from estimator.metrics import update_members
-from estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
-from sim.scenes import REALSENSE_1280x720, SceneSpec
-from sim.sequences import make_sequence
+from posefuse.bench.translation_sequences import run_sequences
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.metrics import update_members
+from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec
+from posefuse.sim.sequences import make_sequence
 
 N_SEQUENCES = 12
 

@@ -11,8 +11,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from service.resources import DEFAULT_CATALOG  # noqa: E402
-from sim.train import TrainConfig, train  # noqa: E402
+from posefuse.service.resources import DEFAULT_CATALOG  # noqa: E402
+from posefuse.sim.train import TrainConfig, train  # noqa: E402
 
 
 def _config(tmp_path, **kw) -> TrainConfig:
@@ -69,7 +69,7 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_ends(tmp_path):
 
 
 def test_fine_tuning_replaces_only_the_class_heatmaps(tmp_path):
-    from sim.train import _Nets
+    from posefuse.sim.train import _Nets
 
     base = _Nets(5, _config(tmp_path))
     other = _Nets(2, _config(tmp_path, seed=1))

@@ -5,13 +5,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.translation import (
+from posefuse.estimator.translation import (
     CenterObservations,
     estimate_translation,
     predict,
     prior_from_first_view,
 )
-from sim.scenes import REALSENSE_1280x720, SceneSpec, sample_views
+from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec, sample_views
 
 CAM = REALSENSE_1280x720
 COV = np.eye(2) * 4.0
@@ -126,7 +126,7 @@ def test_prior_refuses_bad_sizes():
 
 
 def test_folding_old_views_into_the_prior_keeps_the_estimate():
-    from estimator.translation import marginalize_oldest
+    from posefuse.estimator.translation import marginalize_oldest
 
     t_true = np.array([0.02, -0.01, 0.03])
     T_wcs = np.concatenate([_views(8, s) for s in range(5)])  # 40 views

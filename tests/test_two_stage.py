@@ -6,18 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.frontend.crops import crop_transform, warp_crop
-from estimator.frontend.two_stage import (
+from posefuse.estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.two_stage import (
     TwoStageConfig,
     crop_boxes,
     decode_boxes,
     suppress_duplicates,
     vote_in_crop,
 )
-from estimator.frontend.voting import VotingConfig
-from service.resources import DEFAULT_CATALOG
-from sim.train_data import render_scene
-from sim.train_targets import BatchConfig, crop_targets, det_targets
+from posefuse.estimator.frontend.voting import VotingConfig
+from posefuse.service.resources import DEFAULT_CATALOG
+from posefuse.sim.train_data import render_scene
+from posefuse.sim.train_targets import BatchConfig, crop_targets, det_targets
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +103,7 @@ def test_crops_of_boxes_and_duplicates(view):
     assert crops.shape == (len(boxes), 96, 96, 3) and crops.dtype == np.uint8
     for bx, (a, b) in zip(boxes, transforms, strict=True):
         assert np.allclose(a * 47.5 + b, bx.center)
-    from estimator.frontend.detection import Detection
+    from posefuse.estimator.frontend.detection import Detection
 
     def det(x, score):
         return Detection(1, [x - 10, 0, 20, 20], [x, 10], np.eye(2), None, score)

@@ -22,16 +22,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from estimator.errors import PosefuseError
-from estimator.frontend.detection import Detection
-from estimator.frontend.two_stage import (
+from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.two_stage import (
     TwoStageConfig,
     crop_boxes,
     decode_boxes,
     suppress_duplicates,
     vote_in_crop,
 )
-from estimator.frontend.voting import VotingConfig, vote_instances
+from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
 
 MEAN = (0.45, 0.45, 0.45)
 STD = (0.25, 0.25, 0.25)

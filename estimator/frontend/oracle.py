@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.detection import Detection
 
 
 @dataclass(frozen=True)

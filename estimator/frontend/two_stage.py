@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.frontend.crops import crop_transform, warp_crop
-from estimator.frontend.detection import Detection
-from estimator.frontend.voting import VotingConfig, vote_instances
+from posefuse.estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
 
 
 @dataclass(frozen=True)
