@@ -45,6 +45,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         seed=args.seed,
         steps=args.steps,
         train_scenes=args.train_scenes,
+        init=None if args.from_scratch else (args.init or "shipped"),
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -118,6 +119,15 @@ def register(subparsers) -> None:
         type=int,
         default=24,
         help="training scenes rendered with --steps (default: 24)",
+    )
+    p.add_argument(
+        "--init",
+        default=None,
+        help="fine-tune the front end from this checkpoint (default: the shipped model's, "
+        "models/robi_like.ckpt: its backbone and stage two are kept, the class heatmaps new)",
+    )
+    p.add_argument(
+        "--from-scratch", action="store_true", help="train the front end from random weights"
     )
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(

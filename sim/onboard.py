@@ -51,6 +51,10 @@ class OnboardConfig:
     # ``train_scenes`` rendered scenes, whatever the machine's speed (``minutes`` is then unused)
     steps: int | None = None
     train_scenes: int = 24
+    # the front end starts from this checkpoint's weights (the shipped model's by default: its
+    # backbone and stage two are shared by every part; only the class heatmaps are new);
+    # None trains from scratch
+    init: str | None = "shipped"
 
 
 class Stages:
@@ -216,8 +220,25 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
     return manifest
 
 
+def initial_checkpoint(config) -> str | None:
+    """The checkpoint onboarding fine-tunes from: ``config.init``, where "shipped" means the
+    shipped model's (``models/robi_like.ckpt``) when it is there."""
+    if config.init is None:
+        return None
+    if config.init != "shipped":
+        if not Path(config.init).is_file():
+            raise PosefuseError(f"--init: {config.init}: no such checkpoint")
+        return config.init
+    from posefuse.service.resources import DEFAULT_MODEL
+
+    shipped = Path(DEFAULT_MODEL).with_suffix(".ckpt")
+    return str(shipped) if shipped.is_file() else None
+
+
 def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:
     from posefuse.sim.train import TrainConfig, train
+
+    init = initial_checkpoint(config)
 
     if config.steps is not None:  # a fixed amount of work: no clock decides anything
         return train(
@@ -234,6 +255,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 seed=config.seed,
                 robi_fraction=config.robi_fraction,
                 deadline=None,
+                init=init,
             ),
         )
     from posefuse.sim.train import TRAIN_SEED_BASE, profile_of, render_scene
@@ -263,6 +285,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         seed=config.seed,
         robi_fraction=config.robi_fraction,
         deadline=stages.deadline - reserve,
+        init=init,
     )
     return train(catalog_dir, model_path, train_config)
 

@@ -476,6 +476,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "render_minutes_this_run": round(render_minutes, 1),
             "seed": config.seed,
             "bf16_autocast": config.bf16,
+            "initialised_from": config.init,
         },
         "validation": val_metrics,
         **config.extra,
