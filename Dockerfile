@@ -3,7 +3,8 @@ FROM python:3.11-slim
 RUN apt-get update && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
-COPY pyproject.toml README.md ./
+# the root of the repository is the package posefuse (__init__.py), its folders the subpackages
+COPY pyproject.toml README.md __init__.py ./
 COPY estimator estimator
 COPY sim sim
 COPY service service
@@ -12,7 +13,9 @@ COPY bench bench
 COPY cli cli
 COPY catalogs catalogs
 COPY models models
-RUN pip install --no-cache-dir -e .
+COPY recordings recordings
+# a regular install, as a wheel: the catalog, models and recordings go with it as package data
+RUN pip install --no-cache-dir .
 # template banks are built at start-up into this cache; mount a volume to keep them
 ENV POSEFUSE_CACHE=/cache
 # few malloc arenas: freed frame buffers go back to the system instead of staying per thread
