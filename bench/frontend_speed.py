@@ -48,8 +48,15 @@ def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple
     dets = []
     for box, (a, b), out in zip(boxes, transforms, outs, strict=True):
         d = vote_in_crop(
-            out, a, b, image.shape[:2], obj_ids[box.class_index], box.score,
-            frontend.voting, config, rng,
+            out,
+            a,
+            b,
+            image.shape[:2],
+            obj_ids[box.class_index],
+            box.score,
+            frontend.voting,
+            config,
+            rng,
         )
         if d is not None:
             dets.append(d)

@@ -55,12 +55,16 @@ def plot_curve(curve: list[dict], path: str | Path) -> None:
     if not pts:
         raise ValueError("the checkpoint's curve has no tuning scores (train with --tune)")
     xmax = max(p["cpu_hours"] for p in pts) * 1.05 or 1.0
+
     def xy(x, y):
         return int(m + x / xmax * (W - 2 * m)), int(H - m - y * (H - 2 * m))
+
     cv2.rectangle(img, xy(0, 0), xy(xmax, 1), (0, 0, 0), 1)
     for y in (0.25, 0.5, 0.75, 0.9, 0.95):
         cv2.line(img, xy(0, y), xy(xmax, y), (220, 220, 220), 1)
-        cv2.putText(img, f"{y:.2f}", (5, xy(0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+        cv2.putText(
+            img, f"{y:.2f}", (5, xy(0, y)[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1
+        )
     colors = [(200, 60, 0), (0, 120, 220), (0, 160, 0), (160, 0, 160)]
     legend = 0
     for k, s in enumerate(sets):
@@ -74,12 +78,35 @@ def plot_curve(curve: list[dict], path: str | Path) -> None:
                     cv2.line(img, a, b, color, 1, cv2.LINE_AA)
             for q in line:
                 cv2.circle(img, q, 3, color, -1)
-            cv2.putText(img, f"{s} {key}" + (" (thick)" if style == 0 else " (thin)"),
-                        (m + 10, m - 40 + 14 * legend), cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1)
+            cv2.putText(
+                img,
+                f"{s} {key}" + (" (thick)" if style == 0 else " (thin)"),
+                (m + 10, m - 40 + 14 * legend),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.4,
+                color,
+                1,
+            )
             legend += 1
-    cv2.putText(img, "cumulative CPU hours", (W // 2 - 70, H - 20), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1)
+    cv2.putText(
+        img,
+        "cumulative CPU hours",
+        (W // 2 - 70, H - 20),
+        cv2.FONT_HERSHEY_SIMPLEX,
+        0.5,
+        (0, 0, 0),
+        1,
+    )
     for x in np.linspace(0, xmax, 6):
-        cv2.putText(img, f"{x:.1f}", (xy(x, 0)[0] - 10, H - m + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+        cv2.putText(
+            img,
+            f"{x:.1f}",
+            (xy(x, 0)[0] - 10, H - m + 18),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (0, 0, 0),
+            1,
+        )
     cv2.imwrite(str(path), img)
 
 

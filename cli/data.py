@@ -44,7 +44,18 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     from posefuse.sim.scenes import INTRINSICS, PROFILES
     from posefuse.sim.synth import SynthConfig, generate_dataset
 
-    if args.intrinsics not in INTRINSICS:
+    camera = INTRINSICS.get(args.intrinsics)
+    if args.camera:
+        from posefuse.sim.scenes import camera_of_size
+
+        try:
+            w, h = (int(x) for x in args.camera.lower().split("x"))
+            camera = camera_of_size(w, h)
+        except ValueError as exc:
+            raise PosefuseError(
+                f"--camera: {args.camera!r}: expected WIDTHxHEIGHT ({exc})"
+            ) from None
+    elif args.intrinsics not in INTRINSICS:
         raise PosefuseError(
             f"--intrinsics: unknown {args.intrinsics!r}; use one of {sorted(INTRINSICS)}"
         )
@@ -63,7 +74,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         split=args.split,
         first_scene_id=args.first_scene,
-        camera=INTRINSICS[args.intrinsics],
+        camera=camera,
         scene=dataclasses.replace(profile, n_instances=(lo, hi), n_views=args.views),
         profile=args.profile,
         obj_ids=obj_ids,
@@ -148,6 +159,13 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--intrinsics", default="realsense", help="camera: realsense, realsense-640 or ensenso"
+    )
+    p.add_argument(
+        "--camera",
+        default=None,
+        metavar="WIDTHxHEIGHT",
+        help="another sensor size, e.g. 640x480 or 1920x1080: the RealSense's horizontal field "
+        "of view at that resolution (instead of --intrinsics)",
     )
     p.add_argument(
         "--obj-ids",

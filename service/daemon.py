@@ -39,6 +39,7 @@ from collections import Counter
 
 import numpy as np
 
+from posefuse.estimator.frontend.network import UnsupportedImage
 from posefuse.service.codec import (
     DecodeError,
     NbvRequest,
@@ -71,6 +72,10 @@ class Daemon:
         self.ingest_dropped: Counter = Counter()
         self.images_received = 0
         self._per_camera: Counter = Counter()  # (camera id, processed | errors)
+        # frames the front end cannot take (e.g. too small), by reason; logged at most once
+        # per camera per minute
+        self.unsupported: Counter = Counter()
+        self._unsupported_logged: dict[str, float] = {}
         self.events: Counter = Counter()
         self.ingest_queue = FairIngest(ingest_config(settings), dropped=self.ingest_dropped)
         self._info_asked: dict[str, float] = {}
@@ -310,6 +315,9 @@ class Daemon:
                     continue
                 try:
                     detections = self.worker.detections(frame)
+                except UnsupportedImage as exc:
+                    self._unsupported(frame, exc)
+                    continue
                 except Exception:
                     self._failed(frame)
                     continue
@@ -346,6 +354,18 @@ class Daemon:
         self.stats.errors += 1
         self._count_frame(frame.camera_id, "errors")
         log.exception("frame %d of %s failed", frame.stamp_ns, frame.camera_id)
+
+    def _unsupported(self, frame, exc: UnsupportedImage) -> None:
+        """A frame the front end cannot take: counted by reason, one log line per camera per
+        minute (a camera sending such frames sends nothing else)."""
+        self.unsupported[f"unsupported_image_{exc.reason}"] += 1
+        last = self._unsupported_logged.get(frame.camera_id)
+        now = time.monotonic()
+        if last is None or now - last > 60.0:
+            self._unsupported_logged[frame.camera_id] = now
+            if len(self._unsupported_logged) > 8 * self.settings.max_cameras:
+                self._unsupported_logged.clear()
+            log.warning("%s: frames refused: %s", frame.camera_id, exc)
 
     def _count_frame(self, camera_id: str, what: str) -> None:
         """Per-camera processed / errors; cameras the synchroniser forgot leave the table once
@@ -612,13 +632,14 @@ class Daemon:
             s.processed
             + s.errors
             + sum(self.sync.dropped.values())
+            + sum(self.unsupported.values())
             + sum(n for k, n in s.decode_reasons.items() if k.startswith("image_"))
             + sum(n for k, n in self.ingest_dropped.items() if k.startswith("image_"))
         )
 
     def stats_dict(self) -> dict:
         s = self.stats
-        dropped = Counter(self.sync.dropped)
+        dropped = Counter(self.sync.dropped) + self.unsupported
         for reason, n in s.decode_reasons.items():
             kind, _, code = reason.partition("_")
             if kind == "image":

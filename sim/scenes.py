@@ -22,6 +22,17 @@ from posefuse.estimator.objects import Catalog, ObjectModel
 from posefuse.estimator.render import MATTE, Lighting, Material, random_lighting
 
 REALSENSE_1280x720 = Camera(np.array([[924.0, 0, 644.0], [0, 924.0, 361.0], [0, 0, 1]]), 1280, 720)
+def camera_of_size(width: int, height: int) -> Camera:
+    """A sensor of ``width`` x ``height`` pixels with the 1280x720 RealSense's horizontal field
+    of view (focal length scaled by the width), square pixels, principal point at the image
+    center: another resolution or aspect of the same kind of camera."""
+    if not (16 <= width <= 8192 and 16 <= height <= 8192):
+        raise ValueError(f"camera size {width}x{height}: each side must be in [16, 8192]")
+    f = REALSENSE_1280x720.K[0, 0] * width / REALSENSE_1280x720.width
+    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    return Camera(K, width, height)
+
+
 INTRINSICS = {
     "realsense": REALSENSE_1280x720,
     "realsense-640": REALSENSE_1280x720.scaled(0.5),

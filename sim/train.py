@@ -99,8 +99,17 @@ class TrainConfig:
 
 # what a resumed run must share with the run that wrote the checkpoint
 _STREAM_FIELDS = (
-    "n_scenes", "views_per_scene", "max_iterations", "batch", "crop_batch", "crop_size",
-    "lr", "warmup", "width", "seed", "robi_fraction",
+    "n_scenes",
+    "views_per_scene",
+    "max_iterations",
+    "batch",
+    "crop_batch",
+    "crop_size",
+    "lr",
+    "warmup",
+    "width",
+    "seed",
+    "robi_fraction",
 )
 
 
@@ -253,7 +262,9 @@ def _float_copy(model):
     return m
 
 
-def _card(catalog, config: TrainConfig, model_path: Path, cov_scale: float, extra: dict) -> ModelCard:
+def _card(
+    catalog, config: TrainConfig, model_path: Path, cov_scale: float, extra: dict
+) -> ModelCard:
     return ModelCard(
         classes=tuple((k, m.name) for k, m in sorted(catalog.items())),
         catalog_hash=catalog_hash(catalog),
@@ -355,13 +366,22 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             raise ValueError(f"{config.resume}: trained for another catalog")
         stored = state["config"]
         config = dataclasses.replace(
-            config, **{k: (tuple(v) if isinstance(v, list) else v) for k, v in stored.items() if k in _STREAM_FIELDS}
+            config,
+            **{
+                k: (tuple(v) if isinstance(v, list) else v)
+                for k, v in stored.items()
+                if k in _STREAM_FIELDS
+            },
         )
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
-    spec = RenderSpec(config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction)
+    spec = RenderSpec(
+        config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction
+    )
     ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
-    val_spec = RenderSpec(config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction)
+    val_spec = RenderSpec(
+        config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction
+    )
     val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
     render_minutes = (time.time() - t_render) / 60
     nets = _Nets(len(catalog), config)

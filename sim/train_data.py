@@ -114,7 +114,9 @@ def _scene_renderer(catalog_dir: str, scene_index: int, views: int, seed_base: i
     return catalog, scene, renderer, seed
 
 
-def instance_rows(catalog, scene, renderer, T_world_cam: np.ndarray, inst: np.ndarray) -> np.ndarray:
+def instance_rows(
+    catalog, scene, renderer, T_world_cam: np.ndarray, inst: np.ndarray
+) -> np.ndarray:
     """(K, 10) the rows of ``INSTANCE_COLUMNS`` but the view, of one view's visible instances.
 
     Args:
@@ -136,8 +138,18 @@ def instance_rows(catalog, scene, renderer, T_world_cam: np.ndarray, inst: np.nd
         full_q = renderer.render_mask(quarter, T_world_cam, k).sum()
         visib = float(min((inst_q == k + 1).sum() / full_q, 1.0)) if full_q else 0.0
         rows.append(
-            (k, classes[inst_k.obj_id], u, v, xs.min(), ys.min(), xs.max() + 1, ys.max() + 1,
-             visib, len(xs))
+            (
+                k,
+                classes[inst_k.obj_id],
+                u,
+                v,
+                xs.min(),
+                ys.min(),
+                xs.max() + 1,
+                ys.max() + 1,
+                visib,
+                len(xs),
+            )
         )
     return np.array(rows, np.float64).reshape(-1, 10)
 
@@ -233,14 +245,22 @@ def render_training_set(
     done_dir.mkdir(exist_ok=True)
     todo = [k for k in range(spec.n_scenes) if not (done_dir / f"{k:06d}.npy").is_file()]
     jobs = [
-        (str(catalog_dir), k, spec.views, spec.seed_base, profile_of(k, spec.robi_fraction),
-         spec.small_scale)
+        (
+            str(catalog_dir),
+            k,
+            spec.views,
+            spec.seed_base,
+            profile_of(k, spec.robi_fraction),
+            spec.small_scale,
+        )
         for k in todo
     ]
     pool = get_context("spawn").Pool(workers) if workers > 1 and jobs else None
     try:
         results = pool.imap(render_scene, jobs) if pool else map(render_scene, jobs)
-        with tqdm(total=spec.n_scenes, initial=spec.n_scenes - len(todo), desc=desc, unit="scene") as bar:
+        with tqdm(
+            total=spec.n_scenes, initial=spec.n_scenes - len(todo), desc=desc, unit="scene"
+        ) as bar:
             for k, views in zip(todo, results, strict=True):
                 scene_rows = []
                 for j, (rgb, inst, small, inst_rows) in enumerate(views):

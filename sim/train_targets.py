@@ -42,7 +42,11 @@ class BatchConfig:
 
 
 def det_targets(
-    rows: np.ndarray, scale: float, origin_xy: tuple[int, int], grid_hw: tuple[int, int], n_classes: int
+    rows: np.ndarray,
+    scale: float,
+    origin_xy: tuple[int, int],
+    grid_hw: tuple[int, int],
+    n_classes: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """CenterNet targets of one detector crop.
 
@@ -104,7 +108,12 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
             px, py = (r[5] + r[7]) / 2 * scale, (r[6] + r[8]) / 2 * scale
             lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
             lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
-            lo_x, hi_x, lo_y, hi_y = max(lo_x, 0), min(hi_x, nx - 1), max(lo_y, 0), min(hi_y, ny - 1)
+            lo_x, hi_x, lo_y, hi_y = (
+                max(lo_x, 0),
+                min(hi_x, nx - 1),
+                max(lo_y, 0),
+                min(hi_y, ny - 1),
+            )
             if lo_x <= hi_x:
                 x0 = int(rng.integers(lo_x, hi_x + 1)) * 16
             if lo_y <= hi_y:
@@ -116,7 +125,10 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
         if rng.random() < 0.5:  # a mirrored bin is as plausible a bin
             image = image[:, ::-1]
             heat, weight, box, box_mask = (
-                heat[:, :, ::-1], weight[:, ::-1], box[:, :, ::-1].copy(), box_mask[:, ::-1]
+                heat[:, :, ::-1],
+                weight[:, ::-1],
+                box[:, :, ::-1].copy(),
+                box_mask[:, ::-1],
             )
             # mirroring moves each cell's center by the stride's odd half: offsets flip sign
             box[2] = -box[2]
@@ -171,14 +183,20 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
             center = np.array([rng.uniform(0, W), rng.uniform(0, H)])
             k = -1
         center = center + rng.uniform(-1, 1, 2) * config.center_jitter * side
-        crop_side = max(config.box_scale * side * np.exp(rng.uniform(-1, 1) * config.scale_jitter), 16.0)
+        crop_side = max(
+            config.box_scale * side * np.exp(rng.uniform(-1, 1) * config.scale_jitter), 16.0
+        )
         a, b = crop_transform(center, crop_side, S)
         crop = warp_crop(ts.full_rgb[view], a, b, S, cv2.INTER_LINEAR)
         label, vec = crop_targets(ts.full_inst[view], k, r[3:5], a, b, S)
         if k >= 0 and label.sum() == 0:
             k = -1
         if rng.random() < 0.5:
-            crop, label, vec = crop[:, ::-1], label[:, ::-1], vec[:, :, ::-1] * np.array([-1, 1], np.float32)[:, None, None]
+            crop, label, vec = (
+                crop[:, ::-1],
+                label[:, ::-1],
+                vec[:, :, ::-1] * np.array([-1, 1], np.float32)[:, None, None],
+            )
         crops.append(np.ascontiguousarray(crop))
         labels.append(np.ascontiguousarray(label))
         vecs.append(np.ascontiguousarray(vec))

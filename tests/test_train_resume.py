@@ -35,8 +35,10 @@ def _config(tmp_path, **kw) -> TrainConfig:
 
 def _weights(ckpt) -> dict:
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
-    return {**{f"det.{k}": v for k, v in state["nets"]["det"].items()},
-            **{f"crop.{k}": v for k, v in state["nets"]["crop"].items()}}, state
+    return {
+        **{f"det.{k}": v for k, v in state["nets"]["det"].items()},
+        **{f"crop.{k}": v for k, v in state["nets"]["crop"].items()},
+    }, state
 
 
 def test_a_resumed_run_ends_where_an_uninterrupted_one_ends(tmp_path):

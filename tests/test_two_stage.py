@@ -50,8 +50,13 @@ def test_detector_targets_decode_to_the_visible_boxes(view):
     boxes = decode_boxes(out, scale, TwoStageConfig(min_score=0.99))
     positives = rows[rows[:, 9] >= 0.3]
     assert len(boxes) == len(positives) > 10
-    truth = np.stack([(positives[:, 5] + positives[:, 7]) / 2 - 0.5,
-                      (positives[:, 6] + positives[:, 8]) / 2 - 0.5], 1)
+    truth = np.stack(
+        [
+            (positives[:, 5] + positives[:, 7]) / 2 - 0.5,
+            (positives[:, 6] + positives[:, 8]) / 2 - 0.5,
+        ],
+        1,
+    )
     for b in boxes:
         d = np.linalg.norm(truth - b.center, axis=1)
         j = int(np.argmin(d))
@@ -92,7 +97,12 @@ def test_an_empty_crop_output_gives_no_detection():
     out = np.zeros((3, g, g), np.float32)
     out[0] = -5.0
     a, b = crop_transform(np.array([50.0, 50.0]), 40.0, config.crop_size)
-    assert vote_in_crop(out, a, b, (100, 100), 1, 1.0, VotingConfig(), config, np.random.default_rng(0)) is None
+    assert (
+        vote_in_crop(
+            out, a, b, (100, 100), 1, 1.0, VotingConfig(), config, np.random.default_rng(0)
+        )
+        is None
+    )
 
 
 def test_crops_of_boxes_and_duplicates(view):

@@ -32,7 +32,9 @@ def crop_transform(center: np.ndarray, side: float, size: int) -> tuple[float, n
     return a, np.asarray(center, np.float64) - a * (size / 2 - 0.5)
 
 
-def warp_crop(image: np.ndarray, a: float, b: np.ndarray, size: int, interpolation: int) -> np.ndarray:
+def warp_crop(
+    image: np.ndarray, a: float, b: np.ndarray, size: int, interpolation: int
+) -> np.ndarray:
     """The (size, size[, 3]) crop of ``image`` (H, W[, 3]) under image = a * crop + b; pixels
     outside the image repeat its border. Only the region the crop covers is read (the image
     may be a memory map)."""

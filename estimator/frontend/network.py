@@ -46,6 +46,15 @@ class ModelError(PosefuseError):
         super().__init__(f"{self.path}: {reason}")
 
 
+class UnsupportedImage(PosefuseError, ValueError):
+    """An image the front end cannot take (wrong type, channels, or size); ``reason`` says
+    which, in a form fit for a counter."""
+
+    def __init__(self, reason: str, message: str):
+        self.reason = reason
+        super().__init__(message)
+
+
 def catalog_hash(catalog) -> str:
     """A hash of the catalog's classes and meshes (what a model was trained on)."""
     h = hashlib.sha256()
@@ -231,17 +240,21 @@ class NetworkFrontend:
     def check_image(self, image: np.ndarray) -> None:
         w, h = self.card.image_size
         if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
-            raise ValueError("image: expected a uint8 numpy array")
+            raise UnsupportedImage("not_uint8", "image: expected a uint8 numpy array")
         if image.ndim != 3 or image.shape[2] != 3:
-            raise ValueError(f"image: expected (H, W, 3) RGB, got shape {image.shape}")
+            raise UnsupportedImage(
+                "not_rgb", f"image: expected (H, W, 3) RGB, got shape {image.shape}"
+            )
         if self.card.kind == "two_stage":
             if min(image.shape[:2]) < MIN_IMAGE_SIDE:
-                raise ValueError(
+                raise UnsupportedImage(
+                    "too_small",
                     f"image: {image.shape[1]}x{image.shape[0]} is smaller than "
-                    f"{MIN_IMAGE_SIDE} px on a side"
+                    f"{MIN_IMAGE_SIDE} px on a side",
                 )
         elif image.shape[:2] != (h, w):
-            raise ValueError(
+            raise UnsupportedImage(
+                "wrong_size",
                 f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}"
             )
 

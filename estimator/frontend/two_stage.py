@@ -148,7 +148,9 @@ def vote_in_crop(
     mask = np.zeros((H, W), bool)
     mask[y0:y1, x0:x1] = local > 0
     my, mx = np.nonzero(local)
-    bbox = np.array([x0 + mx.min(), y0 + my.min(), mx.max() - mx.min() + 1, my.max() - my.min() + 1], float)
+    bbox = np.array(
+        [x0 + mx.min(), y0 + my.min(), mx.max() - mx.min() + 1, my.max() - my.min() + 1], float
+    )
     fg = 1.0 / (1.0 + np.exp(-logit[members[:, 1], members[:, 0]].astype(np.float64)))
     score = float(box_score * fg.mean())
     return Detection(obj_id, bbox, center, cov, mask, score)
@@ -162,7 +164,8 @@ def suppress_duplicates(dets: list[Detection], factor: float) -> list[Detection]
         side = d.bbox_xywh[2:].max()
         if any(
             k.obj_id == d.obj_id
-            and np.linalg.norm(k.center_uv - d.center_uv) < factor * min(side, k.bbox_xywh[2:].max())
+            and np.linalg.norm(k.center_uv - d.center_uv)
+            < factor * min(side, k.bbox_xywh[2:].max())
             for k in kept
         ):
             continue
