@@ -118,7 +118,8 @@ def run_demo(
             log_level="warning",
         )
     )
-    threading.Thread(target=server.run, daemon=True).start()
+    server_thread = threading.Thread(target=server.run, daemon=True)
+    server_thread.start()
     url = f"http://{settings.http_host}:{settings.http_port}"
     print(
         f"[2/3] daemon of cell {settings.cell!r}: zenoh {settings.mode} listening on "
@@ -233,4 +234,7 @@ def run_demo(
     server.should_exit = True
     daemon.stop()
     daemon_thread.join(timeout=10)
+    # both threads ended before the interpreter exits: a daemon thread still running native
+    # code at finalization is cut mid-unwind ("FATAL: exception not rethrown", exit 134)
+    server_thread.join(timeout=10)
     return segments
