@@ -1,13 +1,16 @@
-"""The learned front end: voting, the ONNX model and its card, bad input, a training smoke test."""
+"""The learned front end: voting, the ONNX model and its card, the shipped model against a
+rendered bin's truth, bad input, a training smoke test."""
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from posefuse.estimator.dataset import load_dataset
 from posefuse.estimator.errors import PosefuseError
 from posefuse.estimator.frontend.network import ModelError, NetworkFrontend, load_card
 from posefuse.estimator.frontend.voting import (
@@ -16,6 +19,7 @@ from posefuse.estimator.frontend.voting import (
     _percentile_90,
     vote_instances,
 )
+from posefuse.service.resources import DEFAULT_MODEL
 
 
 def _field(centers, size=60, noise=0.0, seed=0):
@@ -68,39 +72,106 @@ def tiny_model(robi_catalog, tmp_path_factory):
     return path
 
 
+def _well_formed(dets, image_hw, catalog):
+    for d in dets:
+        assert d.obj_id in catalog
+        assert np.all(np.isfinite(d.center_uv)) and np.all(np.linalg.eigvalsh(d.center_cov) > 0)
+        assert d.mask is None or d.mask.shape == image_hw
+        assert 0.0 <= d.score <= 1.0
+
+
 def test_training_smoke_export_reload_infer(tiny_model, robi_catalog):
+    """Three steps of training export a model the front end loads and runs (what it finds after
+    three steps is noise: the shipped model's accuracy is checked below)."""
     frontend = NetworkFrontend(tiny_model, robi_catalog)
-    image = np.random.default_rng(0).integers(0, 255, (720, 1280, 3), dtype=np.uint8)
-    out = frontend.infer(image)
-    assert out.shape == (len(robi_catalog) + 3, 184, 320)
-    dets = frontend.detect(image)
-    assert isinstance(dets, list)
     card = load_card(tiny_model)
     assert [n for _, n in card.classes] == [m.name for m in robi_catalog.values()]
+    image = np.random.default_rng(0).integers(0, 255, (720, 1280, 3), dtype=np.uint8)
+    out = frontend.infer(image)
+    extra = 4 if card.kind == "two_stage" else 3  # box size and offset / unit vectors
+    assert out.shape[0] == len(robi_catalog) + extra and np.all(np.isfinite(out))
+    _well_formed(frontend.detect(image), (720, 1280), robi_catalog)
 
 
-def test_bad_input_gives_one_clear_error(tiny_model, robi_catalog, tmp_path):
-    frontend = NetworkFrontend(tiny_model, robi_catalog)
-    with pytest.raises(ValueError, match="expects 1280x720 images, got 640x480"):
-        frontend.detect(np.zeros((480, 640, 3), np.uint8))
+def _projected_origin(camera, T_cam_obj):
+    p = camera.K @ T_cam_obj[:3, 3]
+    return p[:2] / p[2]
+
+
+def test_shipped_model_finds_the_visible_parts_where_they_are(full_res_dataset, robi_catalog):
+    """On a rendered mixed bin (4 views, 6-8 parts): of the parts more than 75% visible, a
+    floor share has a detection of its class within 5 px of its projected origin, and a floor
+    share of the detections lies within 5 px of a part of their class. Measured with the shipped
+    model: recall 0.87 (20 of 23), precision 0.84. Centers shifted by 6 px score 0.26 / 0.24,
+    classes swapped or random centers 0 / 0."""
+    dataset = load_dataset(full_res_dataset)
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    n_parts = found = n_dets = near = 0
+    for view in dataset.views():
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        dets = frontend.detect(image, stamp_seed=view.im_id)
+        _well_formed(dets, image.shape[:2], robi_catalog)
+        parts = [
+            (g.obj_id, _projected_origin(view.camera, g.T_cam_obj), g.visib_fract)
+            for g in view.gts
+            if g.T_cam_obj[2, 3] > 0
+        ]
+        n_dets += len(dets)
+        near += sum(
+            any(o == d.obj_id and np.linalg.norm(d.center_uv - uv) <= 5.0 for o, uv, _ in parts)
+            for d in dets
+        )
+        for obj_id, uv, visib in parts:
+            if visib > 0.75:
+                n_parts += 1
+                found += any(
+                    d.obj_id == obj_id and np.linalg.norm(d.center_uv - uv) <= 5.0 for d in dets
+                )
+    assert n_parts >= 20
+    assert found / n_parts >= 0.6, f"{found} of {n_parts} visible parts found within 5 px"
+    assert near / n_dets >= 0.6, f"{near} of {n_dets} detections within 5 px of a part"
+
+
+def test_bad_input_gives_one_clear_error(robi_catalog, tmp_path):
+    """The shipped model (no torch needed): wrong images, a missing, foreign or damaged model."""
+    model = Path(DEFAULT_MODEL)
+    frontend = NetworkFrontend(model, robi_catalog)
+    if frontend.card.kind == "two_stage":  # any image size but a tiny one
+        with pytest.raises(ValueError, match="16x20 is smaller than 32 px"):
+            frontend.detect(np.zeros((20, 16, 3), np.uint8))
+    else:
+        with pytest.raises(ValueError, match="expects 1280x720 images, got 640x480"):
+            frontend.detect(np.zeros((480, 640, 3), np.uint8))
     with pytest.raises(ValueError, match=r"expected \(H, W, 3\) RGB"):
         frontend.detect(np.zeros((720, 1280), np.uint8))
     with pytest.raises(ValueError, match="uint8"):
         frontend.detect(np.zeros((720, 1280, 3), np.float32))
     with pytest.raises(ModelError, match="model file not found"):
         NetworkFrontend(tmp_path / "missing.onnx", robi_catalog)
+    card = json.loads(model.with_suffix(".json").read_text())
     # a model for another catalog
     other = tmp_path / "other.onnx"
-    shutil.copy(tiny_model, other)
-    card = json.loads(tiny_model.with_suffix(".json").read_text())
-    card["classes"] = card["classes"][:2]
-    other.with_suffix(".json").write_text(json.dumps(card))
+    shutil.copy(model, other)
+    other.with_suffix(".json").write_text(json.dumps({**card, "classes": card["classes"][:2]}))
     with pytest.raises(ModelError, match="retrain it with posefuse train"):
         NetworkFrontend(other, robi_catalog)
     assert issubclass(ModelError, PosefuseError)
+    # a two-stage card whose crop model is not beside it
+    lone = tmp_path / "lone.onnx"
+    shutil.copy(model, lone)
+    two_stage = {**card, "kind": "two_stage", "two_stage": {"crop_model": "lone_crop.onnx"}}
+    lone.with_suffix(".json").write_text(json.dumps(two_stage))
+    with pytest.raises(ModelError, match="crop model of this two-stage card is missing"):
+        NetworkFrontend(lone, robi_catalog)
+    # a malformed card
+    (tmp_path / "mal.onnx").write_bytes(model.read_bytes())
+    malformed = {k: v for k, v in card.items() if k != "classes"}
+    (tmp_path / "mal.json").write_text(json.dumps(malformed))
+    with pytest.raises(ModelError, match="model card is malformed"):
+        NetworkFrontend(tmp_path / "mal.onnx", robi_catalog)
     # a damaged model file
     (tmp_path / "bad.onnx").write_bytes(b"not an onnx file")
-    (tmp_path / "bad.json").write_text(tiny_model.with_suffix(".json").read_text())
+    (tmp_path / "bad.json").write_text(model.with_suffix(".json").read_text())
     with pytest.raises(ModelError, match="onnxruntime cannot load it"):
         NetworkFrontend(tmp_path / "bad.onnx", robi_catalog)
 
