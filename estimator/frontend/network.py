@@ -25,6 +25,7 @@ import numpy as np
 from posefuse.estimator.errors import PosefuseError
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.two_stage import (
+    Box,
     TwoStageConfig,
     crop_boxes,
     decode_boxes,
@@ -255,7 +256,7 @@ class NetworkFrontend:
         elif image.shape[:2] != (h, w):
             raise UnsupportedImage(
                 "wrong_size",
-                f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}"
+                f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}",
             )
 
     def infer(self, image: np.ndarray) -> np.ndarray:
@@ -326,25 +327,46 @@ class NetworkFrontend:
 
     def _detect_two_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
         config = self.two_stage
-        boxes = decode_boxes(
-            self.infer(image), input_scale_for(image.shape[:2], self.card), config
-        )
-        crops, transforms = crop_boxes(image, boxes, config)
-        if not boxes:
-            return []
-        outs = self.crop_infer(crops)
+        boxes = decode_boxes(self.infer(image), input_scale_for(image.shape[:2], self.card), config)
         rng = np.random.default_rng([self.seed, stamp_seed])
-        obj_ids = [k for k, _ in self.card.classes]
-        dets = []
-        for box, (a, b), out in zip(boxes, transforms, outs, strict=True):
-            det = vote_in_crop(
-                out, a, b, image.shape[:2], obj_ids[box.class_index], box.score,
-                self.voting, config, rng,
-            )
-            if det is not None and np.sqrt(np.trace(det.center_cov)) <= self.max_center_std_px:
-                dets.append(det)
+        dets = self._stage_two(image, boxes, rng)
+        for _ in range(config.refine_passes):
+            # crop again around each voted center: the part is then the one the crop is
+            # centred on, as stage two was trained to expect
+            kept = [(b, d) for b, d in zip(boxes, dets, strict=True) if d is not None]
+            boxes = [Box(b.class_index, d.center_uv, b.size, b.score) for b, d in kept]
+            again = self._stage_two(image, boxes, rng)
+            dets = [a if a is not None else d for a, (_, d) in zip(again, kept, strict=True)]
+        dets = [
+            d
+            for d in dets
+            if d is not None and np.sqrt(np.trace(d.center_cov)) <= self.max_center_std_px
+        ]
         dets = suppress_duplicates(dets, config.duplicate_factor)
         return sorted(dets, key=lambda d: (d.obj_id, -d.score))
+
+    def _stage_two(self, image: np.ndarray, boxes: list, rng) -> list[Detection | None]:
+        """One detection (or None) per box."""
+        if not boxes:
+            return []
+        config = self.two_stage
+        crops, transforms = crop_boxes(image, boxes, config)
+        outs = self.crop_infer(crops)
+        obj_ids = [k for k, _ in self.card.classes]
+        return [
+            vote_in_crop(
+                out,
+                a,
+                b,
+                image.shape[:2],
+                obj_ids[box.class_index],
+                box.score,
+                self.voting,
+                config,
+                rng,
+            )
+            for box, (a, b), out in zip(boxes, transforms, outs, strict=True)
+        ]
 
 
 def _session(ort, path: Path, options):

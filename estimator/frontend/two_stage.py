@@ -38,6 +38,7 @@ class TwoStageConfig:
     min_crop_side: float = 16.0  # image pixels
     min_votes: int = 10  # object pixels (crop output cells) a center needs
     duplicate_factor: float = 0.3  # same-class centers closer than this x box side: one part
+    refine_passes: int = 0  # stage two again on crops centred on its own centers
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,12 +118,13 @@ def vote_in_crop(
     ys, xs = np.nonzero(sel)
     pix = np.stack([xs, ys], 1).astype(np.float64)
     vec = vectors[:, ys, xs].T.astype(np.float64)
-    instances = vote_instances(pix, vec, voting, rng)
+    instances = [i for i in vote_instances(pix, vec, voting, rng) if i.n_votes >= config.min_votes]
     if not instances:
         return None
-    inst = instances[0]
-    if inst.n_votes < config.min_votes:
-        return None
+    # the part the crop is centred on: in a pile the crop also holds pieces of its
+    # neighbours, and a neighbour's piece may gather more votes than the part itself
+    middle = 0.5 * (g - 1)
+    inst = min(instances, key=lambda i: float(np.hypot(*(i.center - middle))))
     # output cell -> crop pixel -> image pixel
     a_out = a * config.crop_stride
     b_out = b + a * 0.5 * (config.crop_stride - 1)
