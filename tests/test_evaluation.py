@@ -178,6 +178,21 @@ def test_add_sym_forgives_symmetries_and_nothing_else(rotvec, k):
     assert add_sym <= pose_error.mssd(T_est, T_gt, square, group) + 1e-12
 
 
+def test_project_points_are_pixels_of_a_pinhole_batch():
+    """(..., N, 2) pixels, each ``K (R p + t)`` divided by its depth (``misc.project_pts``)."""
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
+    pts = np.array([[0.0, 0.0, 0.0], [0.1, -0.05, 0.02], [-0.03, 0.04, 0.1]])
+    turned = Rotation.from_rotvec([0, 0.3, 0]).as_matrix()
+    T = np.stack([_T(np.eye(3), (0.0, 0.0, 1.0)), _T(turned, (0.02, 0.0, 0.5))])
+    uv = pose_error.project_points(K, T, pts)
+    assert uv.shape == (2, 3, 2)
+    for b in range(2):
+        for n in range(3):
+            p = K @ (T[b, :3, :3] @ pts[n] + T[b, :3, 3])
+            np.testing.assert_allclose(uv[b, n], p[:2] / p[2], rtol=1e-12)
+    np.testing.assert_allclose(uv[0, 0], [320.0, 240.0])
+
+
 def test_continuous_symmetry_steps_as_bop():
     """ceil(pi / 0.01) = 315 rotations about an axis through its offset, identity first."""
     axis, offset = np.array([0.0, 0.0, 2.0]), np.array([0.01, -0.02, 0.0])
