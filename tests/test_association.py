@@ -108,9 +108,17 @@ def test_cost_matrix_gates_at_gate_chi2_inclusive():
 
 def test_the_gate_must_be_positive():
     assert AssociationConfig().gate_chi2 == 16.0
+    assert AssociationConfig(gate_chi2=0.5).gate_chi2 == 0.5  # a tight gate is a valid choice
     for bad in (0.0, -1.0):
         with pytest.raises(ValueError, match="association config"):
             AssociationConfig(gate_chi2=bad)
+
+
+def test_centers_and_covariances_of_different_lengths_are_refused():
+    tracks = [_track([0.0, 0.0, 1.0], np.zeros((3, 3)))]
+    centers = np.array([[320.0, 240.0], [330.0, 240.0]])
+    with pytest.raises(ValueError):  # never silently truncated to the shorter
+        cost_matrix(tracks, np.eye(4), K, centers, np.eye(2)[None], AssociationConfig())
 
 
 def _brute_force(cost):

@@ -68,7 +68,7 @@ def tiny_model(robi_catalog, tmp_path_factory):
         n_scenes=1, views_per_scene=1, val_scenes=1, max_iterations=3, workers=1, batch=2
     )
     card = train(DEFAULT_CATALOG, path, config)
-    assert card["training"]["iterations"] == 3
+    assert card["training"]["steps"] == 3
     return path
 
 
