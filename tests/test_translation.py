@@ -157,3 +157,130 @@ def test_folding_old_views_into_the_prior_keeps_the_estimate():
     assert len(window) == 10
     assert np.linalg.norm(est.t_world_obj - full.t_world_obj) < 0.2e-3
     np.testing.assert_allclose(np.sqrt(np.diag(est.cov)), np.sqrt(np.diag(full.cov)), rtol=0.2)
+
+
+def test_bbox_diagonal_ratio_of_a_sphere_and_of_a_rod():
+    """A sphere's projection is a disk of its diameter d whatever the turn: its box has the
+    diagonal d sqrt(2). A rod of length d seen at angle theta to its axis spans d sin(theta):
+    with cos(theta) uniform on [-1, 1] the median of |sin(theta)| is sqrt(3) / 2."""
+    from posefuse.estimator.translation import bbox_diagonal_ratio
+
+    rng = np.random.default_rng(0)
+    sphere = rng.normal(size=(4000, 3))
+    sphere = 0.05 * sphere / np.linalg.norm(sphere, axis=1, keepdims=True)  # diameter 0.1
+    assert bbox_diagonal_ratio(sphere, 0.1) == pytest.approx(np.sqrt(2), rel=0.01)
+    rod = np.outer(np.linspace(-0.05, 0.05, 101), [0.0, 0.0, 1.0])
+    ratio = bbox_diagonal_ratio(rod, 0.1, n=4000)
+    assert ratio == pytest.approx(np.sqrt(3) / 2, abs=0.02)
+    # the same draw for the same seed; another seed differs only by sampling
+    assert bbox_diagonal_ratio(rod, 0.1, n=4000) == ratio
+    assert bbox_diagonal_ratio(rod, 0.1, n=4000, seed=1) != ratio
+    assert bbox_diagonal_ratio(rod * 2, 0.2, n=4000) == pytest.approx(ratio, rel=1e-12)
+
+
+def _obs_of(stamps, seed=0):
+    rng = np.random.default_rng(seed)
+    obs = CenterObservations.empty()
+    for s in stamps:
+        T = np.eye(4)
+        T[:3, 3] = rng.normal(0, 0.1, 3)
+        obs = obs.append(T, CAM.K * rng.uniform(0.9, 1.1), rng.uniform(0, 500, 2), COV * s, s)
+    return obs
+
+
+def test_select_and_concat_keep_every_field_of_each_view_together():
+    a, b = _obs_of([1, 4, 6], seed=1), _obs_of([2, 5, 3], seed=2)
+    fields = ("R_cam_world", "t_cam_world", "K", "uv", "info", "stamp_ns")
+    both = a.concat(b)
+    assert len(both) == 6 and both.stamp_ns.tolist() == [1, 2, 3, 4, 5, 6]
+    for k, stamp in enumerate(both.stamp_ns):
+        src = a if stamp in a.stamp_ns else b
+        i = src.stamp_ns.tolist().index(stamp)
+        for f in fields:
+            np.testing.assert_array_equal(getattr(both, f)[k], getattr(src, f)[i])
+    # equal stamps keep their order: self's view first
+    tie = _obs_of([7], seed=3).concat(_obs_of([7], seed=4))
+    np.testing.assert_array_equal(tie.uv[0], _obs_of([7], seed=3).uv[0])
+    for keep in (np.array([True, False, True]), np.array([2, 0])):
+        sub = a.select(keep)
+        idx = np.flatnonzero(keep) if keep.dtype == bool else keep
+        for f in fields:
+            np.testing.assert_array_equal(getattr(sub, f), getattr(a, f)[idx])
+
+
+def test_robust_cost_is_the_prior_plus_huber_on_each_view():
+    """Against a second implementation: an inlier view costs s, an outlier 2 k sqrt(s) - k^2,
+    a view with the part behind the camera 1e6, plus (t - m)^T P^-1 (t - m)."""
+    from posefuse.estimator.translation import HUBER_K, robust_cost
+
+    t = np.array([0.01, -0.02, 0.0])
+    T_wcs = _views(3, 5)
+    obs = _observe(t, T_wcs)
+    uv = obs.uv.copy()
+    uv[1] += [1.0, 0.5]  # s = (1 + 0.25) / 4, an inlier
+    uv[2] += [40.0, 0.0]  # s = 400, far beyond the Huber threshold
+    obs = CenterObservations(obs.R_cam_world, obs.t_cam_world, obs.K, uv, obs.info, obs.stamp_ns)
+    m, P = t + [0.003, 0.0, -0.004], np.diag([1e-4, 4e-4, 1e-4])
+    d = t - m
+    k = HUBER_K
+    expected = d @ np.linalg.solve(P, d) + 0.0 + 1.25 / 4 + (2 * k * 20.0 - k**2)
+    assert robust_cost(t, obs, m, P) == pytest.approx(expected, rel=1e-9)
+    assert robust_cost(t, obs, m, P, huber_k=30.0) == pytest.approx(
+        d @ np.linalg.solve(P, d) + 1.25 / 4 + 400.0, rel=1e-9
+    )
+    # a view that sees the point from behind counts 1e6, not its residual
+    behind = np.eye(4)
+    behind[:3, 3] = [0.0, 0.0, -1.0]  # t_cam = t - (0, 0, 1): z < 0
+    flipped = obs.append(behind, CAM.K, np.array([640.0, 360.0]), COV, 9)
+    assert robust_cost(t, flipped, m, P) == pytest.approx(expected + 1e6, rel=1e-9)
+
+
+def _info_form(P, m, J, W, r, t_hat):
+    """The Gaussian product of N(m, P) and one linearised view, written out."""
+    A = np.linalg.inv(P)
+    # minimise (t - m)^T A (t - m) + (J (t - t_hat) + r)^T W (J (t - t_hat) + r)
+    H = A + J.T @ W @ J
+    g = A @ m - J.T @ W @ (r - J @ t_hat)
+    return np.linalg.solve(H, g), np.linalg.inv(H)
+
+
+def test_marginalize_oldest_folds_exactly_the_first_view_into_the_prior():
+    from posefuse.estimator.translation import HUBER_K, marginalize_oldest
+
+    t = np.array([0.02, 0.01, 0.0])
+    T_wcs = _views(4, 8)
+    obs = _observe(t, T_wcs, noise=1.5, seed=2)
+    m, P = t + [0.01, -0.01, 0.02], np.eye(3) * 4e-4
+    t_hat = t + [0.001, 0.0, -0.002]
+    rest, mean, cov = marginalize_oldest(obs, m, P, t_hat)
+    assert len(rest) == 3
+    for f in ("R_cam_world", "t_cam_world", "K", "uv", "info", "stamp_ns"):
+        np.testing.assert_array_equal(getattr(rest, f), getattr(obs, f)[1:])
+    uv, J, _ = predict(t_hat, obs.select([0]))
+    r = uv[0] - obs.uv[0]
+    W = obs.info[0]
+    assert np.sqrt(r @ W @ r) <= HUBER_K  # an inlier: folded at full weight
+    want_mean, want_cov = _info_form(P, m, J[0], W, r, t_hat)
+    np.testing.assert_allclose(mean, want_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov, want_cov, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(cov, cov.T)
+    # an outlier first view is folded with its Huber weight k / sqrt(s)
+    uv_f = obs.uv.copy()
+    uv_f[0] += [60.0, 0.0]
+    far = CenterObservations(obs.R_cam_world, obs.t_cam_world, obs.K, uv_f, obs.info, obs.stamp_ns)
+    _, mean_f, cov_f = marginalize_oldest(far, m, P, t_hat)
+    r_f = uv[0] - far.uv[0]
+    s = r_f @ W @ r_f
+    assert np.sqrt(s) > HUBER_K
+    want_mean, want_cov = _info_form(P, m, J[0], W * HUBER_K / np.sqrt(s), r_f, t_hat)
+    np.testing.assert_allclose(mean_f, want_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(cov_f, want_cov, rtol=1e-9, atol=1e-15)
+    # a first view with the part behind it teaches nothing: the prior stays
+    behind = np.eye(4)
+    behind[:3, 3] = [0.0, 0.0, -1.0]
+    b_obs = CenterObservations.empty().append(behind, CAM.K, np.array([640.0, 360.0]), COV, 0)
+    b_obs = b_obs.concat(obs.select([1, 2]))
+    rest_b, mean_b, cov_b = marginalize_oldest(b_obs, m, P, t)
+    np.testing.assert_allclose(mean_b, m, rtol=1e-12)
+    np.testing.assert_allclose(cov_b, P, rtol=1e-12)
+    assert len(rest_b) == 2
