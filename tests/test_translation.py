@@ -284,3 +284,64 @@ def test_marginalize_oldest_folds_exactly_the_first_view_into_the_prior():
     np.testing.assert_allclose(mean_b, m, rtol=1e-12)
     np.testing.assert_allclose(cov_b, P, rtol=1e-12)
     assert len(rest_b) == 2
+
+
+def test_the_estimate_reports_its_views_residuals_and_cost_at_the_solution():
+    from posefuse.estimator.translation import robust_cost
+
+    t_true = np.array([0.02, -0.01, 0.03])
+    T_wcs = _views(5, 21)
+    obs = _observe(t_true, T_wcs, noise=2.0, seed=4)
+    mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], 60.0, 0.08)
+    est = estimate_translation(obs, mean, cov)
+    assert est.n_views == 5 and est.t_world_obj.dtype == np.float64
+    uv, _, _ = predict(est.t_world_obj, obs)
+    r = uv - obs.uv
+    np.testing.assert_allclose(est.chi2, np.einsum("ni,nij,nj->n", r, obs.info, r), rtol=1e-9)
+    assert est.cost == pytest.approx(robust_cost(est.t_world_obj, obs, mean, cov), rel=1e-12)
+    # the minimum: no small move lowers the cost
+    for d in np.vstack([np.eye(3), -np.eye(3)]) * 1e-5:
+        assert robust_cost(est.t_world_obj + d, obs, mean, cov) >= est.cost - 1e-9
+    # no iteration: the start itself (as float64), not the prior mean
+    start = [0, 0, 1]
+    still = estimate_translation(obs, mean, cov, start=start, max_iterations=0)
+    np.testing.assert_array_equal(still.t_world_obj, [0.0, 0.0, 1.0])
+    assert still.t_world_obj.dtype == np.float64
+    # run to the end (tolerance 0): the same minimum, found without giving up
+    again = estimate_translation(obs, mean, cov, start=est.t_world_obj + 0.01, tolerance=0.0)
+    np.testing.assert_allclose(again.t_world_obj, est.t_world_obj, atol=1e-7)
+
+
+def test_a_view_behind_the_camera_gets_no_weight():
+    t_true = np.array([0.0, 0.01, 0.02])
+    T_wcs = _views(3, 30)
+    obs = _observe(t_true, T_wcs, noise=1.0, seed=6)
+    mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], 60.0, 0.08)
+    good = estimate_translation(obs, mean, cov)
+    behind = np.eye(4)
+    behind[:3, 3] = -t_true - [0.0, 0.0, 1.0]  # the part 1 m behind this camera
+    with_behind = obs.append(behind, CAM.K, np.array([640.0, 360.0]), COV, 9)
+    est = estimate_translation(with_behind, mean, cov)
+    assert np.all(np.isfinite(est.t_world_obj)) and np.all(np.isfinite(est.cov))
+    assert est.weights[-1] == 0.0 and np.all(est.weights[:-1] > 0)
+    np.testing.assert_allclose(est.t_world_obj, good.t_world_obj, atol=1e-9)
+    # at exactly MIN_DEPTH a view gives nothing either (``z > MIN_DEPTH``)
+    from posefuse.estimator.translation import MIN_DEPTH
+
+    at_edge = np.eye(4)
+    at_edge[:3, 3] = [0.0, 0.0, MIN_DEPTH]  # the origin at depth MIN_DEPTH
+    edge_obs = CenterObservations.empty().append(at_edge, CAM.K, np.array([640.0, 360.0]), COV, 0)
+    origin = np.zeros(3)
+    edge = estimate_translation(edge_obs, origin, np.eye(3), start=origin, max_iterations=0)
+    assert edge.weights[0] == 0.0
+
+
+def test_huber_weights_are_one_inside_and_k_over_root_outside():
+    from posefuse.estimator.translation import _huber_weights
+
+    s = np.array([0.0, 0.25, 0.5, 4.0, 9.0])
+    np.testing.assert_allclose(_huber_weights(s, 2.0), [1, 1, 1, 1, 2 / 3])
+    # a threshold below one standard deviation: 0.5 / sqrt(0.5) for s = 0.5
+    np.testing.assert_allclose(
+        _huber_weights(s, 0.5), [1, 1, 0.5 / np.sqrt(0.5), 0.25, 0.5 / 3]
+    )
