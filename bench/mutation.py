@@ -139,9 +139,24 @@ def _statuses(workdir: Path, name: str) -> dict[str, str]:
     return {k: status_by_exit_code[v] for k, v in data["exit_code_by_key"].items()}
 
 
-def _diff(workdir: Path, mutant: str) -> str:
-    out = _mutmut(workdir, "show", mutant).stdout
-    return "\n".join(line for line in out.splitlines() if not line.startswith("#"))
+_DIFFS = """
+import json, sys
+from mutmut.mutation.diff_apply import get_diff_for_mutant
+names, path = json.loads(sys.argv[1]), sys.argv[2]
+print(json.dumps({n: get_diff_for_mutant(n, path=path) for n in names}))
+"""
+
+
+def _diffs(workdir: Path, name: str, mutants: list[str]) -> dict[str, str]:
+    """{mutant: its unified diff}, all in one process (``mutmut show`` starts one per mutant)."""
+    if not mutants:
+        return {}
+    path = f"posefuse/estimator/{name}.py"
+    out = subprocess.run(
+        [sys.executable, "-c", _DIFFS, json.dumps(mutants), path],
+        cwd=workdir, capture_output=True, text=True, check=True,
+    ).stdout
+    return json.loads(out)
 
 
 def changed_lines(diff: str) -> list[str]:
@@ -225,8 +240,9 @@ def main(argv: list[str] | None = None) -> int:
     killed = [m for m, s in statuses.items() if s in KILLED]
     rest = sorted(m for m in statuses if m not in killed)
     survived, equiv = [], []
+    diffs = _diffs(workdir, name, rest)
     for m in rest:
-        d = _diff(workdir, m)
+        d = diffs[m]
         key = (function_of(m), tuple(changed_lines(d)))
         if key in known:
             equiv.append((m, known[key]))
