@@ -345,3 +345,42 @@ def test_huber_weights_are_one_inside_and_k_over_root_outside():
     np.testing.assert_allclose(
         _huber_weights(s, 0.5), [1, 1, 0.5 / np.sqrt(0.5), 0.25, 0.5 / 3]
     )
+
+
+def test_a_measurement_keeps_its_inverse_covariance_and_integer_stamp():
+    cov = np.array([[4.0, 1.0], [1.0, 2.0]])
+    obs = CenterObservations.empty().append(np.eye(4), CAM.K, [10, 20], cov, 123)
+    np.testing.assert_allclose(obs.info[0], np.linalg.inv(cov), rtol=1e-12)
+    assert obs.uv.dtype == np.float64 and obs.uv.shape == (1, 2)
+    assert obs.stamp_ns.dtype == np.int64 and obs.stamp_ns.tolist() == [123]
+    # positive definite means the smaller eigenvalue above 1e-9 x max(1, the larger)
+    CenterObservations.empty().append(np.eye(4), CAM.K, [0, 0], np.diag([1.2e-9, 1.0]), 0)
+    for bad in (np.diag([0.9e-9, 1.0]), np.diag([5e-8, 100.0])):
+        with pytest.raises(ValueError, match="not positive definite"):
+            CenterObservations.empty().append(np.eye(4), CAM.K, [0, 0], bad, 0)
+
+
+def test_prior_depth_scales_with_size_ratio_and_refuses_zero_or_infinite_sizes():
+    K = CAM.K
+    t1, _ = prior_from_first_view(np.eye(4), K, K[:2, 2], 60.0, 0.08)
+    t2, P2 = prior_from_first_view(np.eye(4), K, K[:2, 2], 60.0, 0.08, size_ratio=2.0)
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    np.testing.assert_allclose(t1, [0, 0, f * 0.08 / 60.0], atol=1e-12)
+    np.testing.assert_allclose(t2, 2 * t1, atol=1e-12)
+    np.testing.assert_allclose(P2, np.eye(3) * (0.5 * t2[2]) ** 2)
+    prior_from_first_view(np.eye(4), K, K[:2, 2], 0.5, 0.08)  # a box under a pixel is a box
+    for diag, diameter in [(60.0, 0.0), (60.0, np.inf), (np.inf, 0.08)]:
+        with pytest.raises(ValueError):
+            prior_from_first_view(np.eye(4), K, K[:2, 2], diag, diameter)
+
+
+def test_projection_with_a_skewed_camera():
+    K = np.array([[500.0, 3.0, 300.0], [0.0, 480.0, 200.0], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    T[:3, 3] = [0.01, -0.02, 0.5]
+    obs = CenterObservations.empty().append(T, K, [0, 0], COV, 0)
+    t = np.array([0.03, 0.04, 0.1])
+    uv, _, z = predict(t, obs)
+    p = K @ (t + T[:3, 3])
+    np.testing.assert_allclose(uv[0], p[:2] / p[2], rtol=1e-12)
+    assert z[0] == pytest.approx(0.6)
