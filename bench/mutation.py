@@ -177,7 +177,9 @@ def load_equivalent(name: str) -> list[dict]:
 def function_of(mutant: str) -> str:
     """'posefuse.estimator.geometry.x_so3_log__mutmut_3' -> 'so3_log' (class methods too)."""
     mangled = mutant.rpartition(".")[2].partition("__mutmut_")[0]
-    return mangled.removeprefix("x_").replace("\u01c1", ".").strip(".")
+    if mangled.startswith("x\u01c1"):  # xǁClassǁmethod
+        return mangled[2:].replace("\u01c1", ".")
+    return mangled.removeprefix("x_")
 
 
 def main(argv: list[str] | None = None) -> int:
