@@ -1,7 +1,7 @@
 """Choose the two-stage front end's detection threshold on tuning sets.
 
 python -m posefuse.bench.frontend_thresholds --model models/robi_like.onnx --dataset DIR
-    [--dataset DIR ...] [--scores 0.2 0.3 ...] [--duplicates 0.3 0.5 ...]
+    [--dataset DIR ...] [--scores 0.2 0.3 ...] [--duplicates 0.3 0.5 ...] [--refine 0 1]
 
 Every (peak threshold, duplicate factor) pair runs the front end over every view and is
 scored with ``score_frontend``'s matching (recall of parts more
@@ -24,6 +24,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dataset", action="append", required=True)
     parser.add_argument("--scores", type=float, nargs="+", default=[0.15, 0.2, 0.3, 0.4, 0.5])
     parser.add_argument("--duplicates", type=float, nargs="+", default=[0.3, 0.5, 0.7])
+    parser.add_argument("--refine", type=int, nargs="+", default=[0, 1])
     args = parser.parse_args(argv)
     for root in args.dataset:
         ds = load_dataset(root)
@@ -32,21 +33,23 @@ def main(argv: list[str] | None = None) -> int:
         views = list(ds.views())
         images = {(v.scene_id, v.im_id): ds.scene(v.scene_id).load_rgb(v.im_id) for v in views}
         print(f"{root}: {len(views)} views")
-        print("| min score | duplicates | recall | precision | median px | NEES |")
-        print("|---|---|---|---|---|---|")
-        for t in args.scores:
-            for f in args.duplicates:
-                fe.two_stage = dataclasses.replace(base, min_score=t, duplicate_factor=f)
+        print("| min score | duplicates | refine | recall | precision | median px | NEES |")
+        print("|---|---|---|---|---|---|---|")
+        combos = [(t, f, r) for t in args.scores for f in args.duplicates for r in args.refine]
+        for t, f, r in combos:
+            fe.two_stage = dataclasses.replace(
+                base, min_score=t, duplicate_factor=f, refine_passes=r
+            )
 
-                def detect(view, fe=fe, images=images):
-                    image = images[(view.scene_id, view.im_id)]
-                    return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+            def detect(view, fe=fe, images=images):
+                image = images[(view.scene_id, view.im_id)]
+                return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
 
-                s = score_frontend(ds, detect, views)
-                print(
-                    f"| {t:.2f} | {f:.2f} | {s.recall:.4f} | {s.precision:.4f} | "
-                    f"{s.median_center_error_px:.2f} | {s.mean_nees:.2f} |"
-                )
+            s = score_frontend(ds, detect, views)
+            print(
+                f"| {t:.2f} | {f:.2f} | {r} | {s.recall:.4f} | {s.precision:.4f} | "
+                f"{s.median_center_error_px:.2f} | {s.mean_nees:.2f} |"
+            )
     return 0
 
 
