@@ -3,9 +3,10 @@
 python -m posefuse.bench.frontend_speed --dataset DIR [--dataset DIR ...]
     [--model models/robi_like.onnx] [--frames 30] [--threads 2]
 
-For each frame: stage one (pre-processing and the box detector), the crops, stage two's network
-on all crops at once, and the voting (with masks and duplicate removal), as the front end runs
-them. Medians are printed per dataset and per number of detections (1-10, 11-20, 21+).
+For each frame: the whole front end as it runs (``NetworkFrontend.detect``), and stage one
+alone (pre-processing, the box detector and its peaks); stage two is the rest (crops, the crop
+network on all crops at once, the refinement pass, voting, masks, duplicate removal). Medians
+are printed per dataset and per number of detections (1-10, 11-20, 21+).
 """
 
 from __future__ import annotations
@@ -20,49 +21,25 @@ from posefuse.estimator.frontend.network import NetworkFrontend, input_scale_for
 
 
 def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:
-    """Seconds per stage of one frame, and the number of detections."""
-    from posefuse.estimator.frontend.two_stage import (
-        crop_boxes,
-        decode_boxes,
-        suppress_duplicates,
-        vote_in_crop,
-    )
+    """Seconds of one frame through the front end's own ``detect`` (both stages, the
+    refinement pass, voting, masks and duplicate removal), and of stage one alone
+    (pre-processing, the box detector and its peaks); the number of detections."""
+    from posefuse.estimator.frontend.two_stage import decode_boxes
 
     t = {}
-    t0 = time.perf_counter()
-    if frontend.crop_session is None:  # a one-stage model
-        dets = frontend.detect(image, seed)
-        t["total"] = time.perf_counter() - t0
-        return t, len(dets)
-    config = frontend.two_stage
-    boxes = decode_boxes(
-        frontend.infer(image), input_scale_for(image.shape[:2], frontend.card), config
-    )
-    t1 = time.perf_counter()
-    crops, transforms = crop_boxes(image, boxes, config)
-    t2 = time.perf_counter()
-    outs = frontend.crop_infer(crops) if boxes else []
-    t3 = time.perf_counter()
-    rng = np.random.default_rng([0, seed])
-    obj_ids = [k for k, _ in frontend.card.classes]
-    dets = []
-    for box, (a, b), out in zip(boxes, transforms, outs, strict=True):
-        d = vote_in_crop(
-            out,
-            a,
-            b,
-            image.shape[:2],
-            obj_ids[box.class_index],
-            box.score,
-            frontend.voting,
-            config,
-            rng,
+    if frontend.crop_session is not None:
+        t0 = time.perf_counter()
+        decode_boxes(
+            frontend.infer(image),
+            input_scale_for(image.shape[:2], frontend.card),
+            frontend.two_stage,
         )
-        if d is not None:
-            dets.append(d)
-    dets = suppress_duplicates(dets, config.duplicate_factor)
-    t4 = time.perf_counter()
-    t.update(stage_one=t1 - t0, crops=t2 - t1, stage_two=t3 - t2, voting=t4 - t3, total=t4 - t0)
+        t["stage_one"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    dets = frontend.detect(image, seed)
+    t["total"] = time.perf_counter() - t0
+    if "stage_one" in t:
+        t["stage_two"] = max(t["total"] - t["stage_one"], 0.0)
     return t, len(dets)
 
 
@@ -97,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _summary(title: str, rows: list[dict]) -> str:
-    keys = [k for k in ("stage_one", "crops", "stage_two", "voting") if k in rows[0]]
+    keys = [k for k in ("stage_one", "stage_two") if k in rows[0]]
     parts = ", ".join(f"{k} {np.median([r[k] for r in rows]) * 1000:.1f}" for k in keys)
     total = [r["total"] for r in rows]
     return (
