@@ -151,12 +151,7 @@ def frontend_overlay(
                 cv2.LINE_AA,
                 tipLength=0.4,
             )
-    if true_centers is not None:
-        for u, v in true_centers:
-            cv2.drawMarker(
-                image, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 14, 2
-            )
-    _draw_centers(image, detections)
+    _draw_centers(image, detections, true_centers)
     return image
 
 
@@ -173,16 +168,17 @@ def _two_stage_overlay(image_rgb, detections, card, true_centers) -> np.ndarray:
     for d in detections:
         x, y, w, h = np.round(d.bbox_xywh).astype(int)
         cv2.rectangle(image, (x, y), (x + w, y + h), _colour(order.get(d.obj_id, 0) * 3), 1)
+    _draw_centers(image, detections, true_centers)
+    return image
+
+
+def _draw_centers(image: np.ndarray, detections, true_centers=None) -> None:
+    """True centers (green crosses), then the voted ones (red) with their 3-sigma ellipses."""
     if true_centers is not None:
         for u, v in true_centers:
             cv2.drawMarker(
                 image, (int(round(u)), int(round(v))), (0, 255, 0), cv2.MARKER_CROSS, 14, 2
             )
-    _draw_centers(image, detections)
-    return image
-
-
-def _draw_centers(image: np.ndarray, detections) -> None:
     for d in detections:
         evals, evecs = np.linalg.eigh(d.center_cov)
         axes = tuple(int(max(1, round(3 * np.sqrt(e)))) for e in evals)
