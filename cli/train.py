@@ -27,6 +27,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     load_catalog(args.catalog)  # a CatalogError before any work
     if not args.out.endswith(".onnx"):
         raise PosefuseError(f"--out: {args.out!r} must end in .onnx")
+    if args.extend and not args.resume:
+        raise PosefuseError("--extend: needs --resume (it lengthens a checkpoint's schedule)")
     if args.resume and not Path(args.resume).is_file():
         raise PosefuseError(f"--resume: {args.resume}: no such checkpoint")
     for root in args.tune:
@@ -51,6 +53,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         resume=args.resume,
         init=args.init,
         run_steps=args.run_steps,
+        extend=(args.extend, args.extend_lr) if args.extend else None,
     )
     card = train(args.catalog, args.out, config)
     print(json.dumps(card, indent=2))
@@ -113,6 +116,16 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="stop this run after this many steps (the schedule is --iterations; resume later)",
+    )
+    p.add_argument(
+        "--extend",
+        type=int,
+        default=None,
+        help="with --resume: lengthen the schedule by a warm restart of this many steps after "
+        "its end (linear warm-up, then a cosine from --extend-lr); kept in the checkpoint",
+    )
+    p.add_argument(
+        "--extend-lr", type=float, default=1e-3, help="peak learning rate of --extend's restart"
     )
     p.add_argument(
         "--init",

@@ -87,14 +87,37 @@ class TrainConfig:
     resume: str | None = None
     init: str | None = None  # a checkpoint of another catalog to fine-tune from
     run_steps: int | None = None  # this run stops after this many steps (the schedule goes on)
+    # warm restarts appended by ``--extend``: (first step, last step + 1, peak learning rate)
+    restarts: tuple[tuple[int, int, float], ...] = ()
+    extend: tuple[int, float] | None = None  # with ``resume``: (steps, peak lr) of one more restart
     extra: dict = field(default_factory=dict)
 
+    @property
+    def total_steps(self) -> int:
+        """The schedule's end: the first cosine, then every restart after it."""
+        return max([self.max_iterations] + [end for _, end, _ in self.restarts])
+
+    def extended(self, steps: int, peak_lr: float) -> TrainConfig:
+        """This schedule with one more warm restart of ``steps`` steps after its end."""
+        if steps <= 0 or peak_lr <= 0:
+            raise ValueError(f"extend: steps ({steps}) and peak lr ({peak_lr}) must be positive")
+        start = self.total_steps
+        return dataclasses.replace(
+            self, restarts=(*self.restarts, (start, start + int(steps), float(peak_lr)))
+        )
+
     def schedule(self, step: int) -> float:
-        """Learning rate of ``step``: linear warm-up, then a cosine to 2% of ``lr``."""
-        if step < self.warmup:
-            return self.lr * (step + 1) / self.warmup
-        frac = min((step - self.warmup) / max(self.max_iterations - self.warmup, 1), 1.0)
-        return self.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * frac)))
+        """Learning rate of ``step``: linear warm-up, then a cosine to 2% of ``lr``; within a
+        restart, the same shape from its own peak over its own steps."""
+        start, end, peak = 0, self.max_iterations, self.lr
+        for r_start, r_end, r_peak in self.restarts:
+            if step >= r_start:
+                start, end, peak = r_start, r_end, r_peak
+        local = step - start
+        if local < self.warmup:
+            return peak * (local + 1) / self.warmup
+        frac = min((local - self.warmup) / max(end - start - self.warmup, 1), 1.0)
+        return peak * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * frac)))
 
 
 # what a resumed run must share with the run that wrote the checkpoint
@@ -110,6 +133,7 @@ _STREAM_FIELDS = (
     "width",
     "seed",
     "robi_fraction",
+    "restarts",
 )
 
 
@@ -370,9 +394,12 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS
+                if k in _STREAM_FIELDS and k != "restarts"
             },
+            restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
         )
+        if config.extend is not None:
+            config = config.extended(*config.extend)
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
     spec = RenderSpec(
@@ -447,7 +474,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         # the evaluation's time is not training time
         cpu_mark, wall_mark = time.process_time(), time.time()
 
-    total = config.max_iterations
+    total = config.total_steps
     if config.run_steps is not None:
         total = min(total, step + config.run_steps)
     bar = tqdm(total=total, initial=step, desc="train", unit="step")
@@ -488,7 +515,8 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             f"scene seeds scene_seed({TRAIN_SEED_BASE}, 0..{config.n_scenes - 1}); "
             f"calibration scene_seed({VAL_SEED_BASE}, 0..{config.val_scenes - 1})",
             "steps": step,
-            "schedule_steps": config.max_iterations,
+            "schedule_steps": config.total_steps,
+            "warm_restarts": [list(r) for r in config.restarts],
             "detector_batch": config.batch,
             "crop_batch": config.crop_batch,
             "cpu_hours": round(cpu_seconds / 3600, 3),

@@ -82,3 +82,34 @@ def test_fine_tuning_replaces_only_the_class_heatmaps(tmp_path):
             assert torch.equal(other.det.state_dict()[k], v), k
     assert other.det.heatmap.weight.shape[0] == 2
     assert np.isclose(float(other.det.heatmap.bias[0]), -2.19)
+
+
+def test_a_warm_restart_repeats_the_schedule_from_its_own_peak():
+    config = TrainConfig(max_iterations=100, warmup=10, lr=2e-3).extended(50, 1e-3)
+    assert config.total_steps == 150 and config.restarts == ((100, 150, 1e-3),)
+    assert config.schedule(99) == pytest.approx(2e-3 * 0.02, rel=0.05)  # the first cosine ends
+    assert config.schedule(100) == pytest.approx(1e-3 / 10)  # warm-up again, to the new peak
+    assert config.schedule(109) == pytest.approx(1e-3)
+    assert config.schedule(149) == pytest.approx(1e-3 * 0.02, rel=0.1)
+    assert config.extended(10, 5e-4).restarts[-1] == (150, 160, 5e-4)
+    with pytest.raises(ValueError, match="extend"):
+        config.extended(0, 1e-3)
+
+
+def test_extend_lengthens_a_finished_schedule_and_the_checkpoint_keeps_it(tmp_path):
+    out = tmp_path / "m.onnx"
+    train(DEFAULT_CATALOG, out, _config(tmp_path))
+    w_end, end = _weights(tmp_path / "m.ckpt")
+    card = train(
+        DEFAULT_CATALOG,
+        out,
+        _config(tmp_path, resume=str(tmp_path / "m.ckpt"), extend=(3, 1e-3)),
+    )
+    w_more, more = _weights(tmp_path / "m.ckpt")
+    assert end["step"] == 6 and more["step"] == 9
+    assert [tuple(r) for r in more["config"]["restarts"]] == [(6, 9, 1e-3)]
+    assert card["training"]["schedule_steps"] == 9
+    assert any(not torch.equal(w_more[k], v) for k, v in w_end.items() if v.is_floating_point())
+    # resuming the extended checkpoint without --extend has nothing left to do
+    train(DEFAULT_CATALOG, out, _config(tmp_path, resume=str(tmp_path / "m.ckpt")))
+    assert _weights(tmp_path / "m.ckpt")[1]["step"] == 9
