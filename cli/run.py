@@ -72,6 +72,7 @@ def run_and_write(
     scene_ids: tuple[int, ...] | None = None,
     rotation: bool = True,
     quiet: bool = False,
+    config=None,
 ) -> DatasetReport:
     """Run the estimator over ``dataset`` (views one at a time, one estimator per scene, the
     template banks built or loaded once) and write its tables into ``out``: translation errors,
@@ -93,13 +94,13 @@ def run_and_write(
     )
     from posefuse.estimator.tracker import MultiViewEstimator
 
-    shared = MultiViewEstimator(dataset.catalog, show_progress=not quiet)
+    shared = MultiViewEstimator(dataset.catalog, config, show_progress=not quiet)
     if rotation:  # build (or load) every class's templates once, with a progress bar
         for obj_id in dataset.catalog:
             shared.matcher(obj_id)
 
     def factory():
-        return MultiViewEstimator(dataset.catalog, banks=shared.banks())
+        return MultiViewEstimator(dataset.catalog, config, banks=shared.banks())
 
     run = run_dataset(
         dataset,
@@ -141,6 +142,24 @@ def run_and_write(
     return report
 
 
+def tracker_config(no_verify: bool = False, no_refine: bool = False):
+    """The estimator's settings, with the multi-view verification or the refinement off."""
+    import dataclasses
+
+    from posefuse.estimator.tracker import TrackerConfig
+
+    config = TrackerConfig()
+    if no_verify:
+        config = dataclasses.replace(
+            config, verification=dataclasses.replace(config.verification, enabled=False)
+        )
+    if no_verify or no_refine:
+        config = dataclasses.replace(
+            config, refinement=dataclasses.replace(config.refinement, enabled=False)
+        )
+    return config
+
+
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
     from posefuse.estimator.dataset import load_dataset
     from posefuse.estimator.frontend.oracle import OracleConfig
@@ -172,7 +191,14 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     frontend = make_frontend(dataset, args.frontend, oracle, args.model, args.seed)
     out = Path(args.out)
     report = run_and_write(
-        dataset, frontend, out, args.frontend, scene_ids, rotation=rotation, quiet=args.quiet
+        dataset,
+        frontend,
+        out,
+        args.frontend,
+        scene_ids,
+        rotation=rotation,
+        quiet=args.quiet,
+        config=tracker_config(args.no_verify, args.no_refine),
     )
     print(report.summary)
     print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
@@ -343,6 +369,14 @@ def register(subparsers) -> None:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the front end's noise")
     p.add_argument("--translation-only", action="store_true", help="skip the rotation step")
+    p.add_argument(
+        "--no-verify",
+        action="store_true",
+        help="without the multi-view verification and refinement (the ablation)",
+    )
+    p.add_argument(
+        "--no-refine", action="store_true", help="verify across views, but do not refine"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)
 

@@ -32,6 +32,7 @@ from posefuse.estimator.association import (
     innovation_cost,
 )
 from posefuse.estimator.camera import Camera
+from posefuse.estimator.edges import EdgeView, ModelEdges, edge_view, model_edges
 from posefuse.estimator.founding import (
     FoundingConfig,
     FoundingPair,
@@ -44,6 +45,7 @@ from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
 from posefuse.estimator.mixture import MixtureConfig, RotationMixture
 from posefuse.estimator.objects import Catalog
+from posefuse.estimator.refinement import RefineConfig, Refinement, refine_pose
 from posefuse.estimator.rotation import RotationConfig, RotationMatcher
 from posefuse.estimator.splitting import SplitConfig, outlier_views
 from posefuse.estimator.templates import (
@@ -51,6 +53,12 @@ from posefuse.estimator.templates import (
     TemplateConfig,
     build_template_bank,
     build_template_banks,
+)
+from posefuse.estimator.verification import (
+    VerificationConfig,
+    Verdict,
+    near_symmetries,
+    verify,
 )
 from posefuse.estimator.translation import (
     MIN_DEPTH,
@@ -132,6 +140,9 @@ class TrackerConfig:
     rotation: RotationConfig = RotationConfig()
     mixture: MixtureConfig = MixtureConfig()
     templates: TemplateConfig = TemplateConfig()
+    # every view's hypotheses checked in all the track's views, then the pose refined over them
+    verification: VerificationConfig = VerificationConfig()
+    refinement: RefineConfig = RefineConfig()
     # a view's rotation is measured once the depth is known to this relative std; earlier
     # views of the track wait (their images are kept for up to max_pending_views frames)
     rotation_max_depth_rel_std: float = 0.05
@@ -165,6 +176,10 @@ class Track:
     pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = field(
         default_factory=list
     )
+    # the most recent views' edge maps (estimator.edges), at most verification.max_views
+    edge_views: list[EdgeView] = field(default_factory=list)
+    verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
+    refined: Refinement | None = None
 
     def view(self) -> TrackView:
         e = self.estimate
@@ -231,6 +246,8 @@ class MultiViewEstimator:
         self._serial: dict[int, int] = {}
         self._size_ratios: dict[int, float] = {}  # per class, for the box depth
         self._held: dict[int, list[HeldDetection]] = {}  # per class, waiting for a partner
+        self._edges: dict[int, ModelEdges] = {}  # per class, for verification
+        self._variants: dict[int, np.ndarray] = {}  # per class, near-symmetric turns
         self._view_serial = 0
         self.last_report = UpdateReport((), (), (), ())
         self.last_stamp_ns: int | None = None
@@ -471,6 +488,8 @@ class MultiViewEstimator:
         for obj_id in self.catalog:
             self.matcher(obj_id)
             self._size_ratio(obj_id)
+            if self.config.verification.enabled:
+                self._model_edges(obj_id)
 
     def matcher(self, obj_id: int) -> RotationMatcher:
         """The rotation matcher of a class (its template bank built or loaded on first use)."""
@@ -503,6 +522,9 @@ class MultiViewEstimator:
             )
         matcher = self.matcher(track.obj_id)
         t_world = track.estimate.t_world_obj
+        vcfg = self.config.verification
+        model = self.catalog[track.obj_id]
+        added = False
         for stamp, T_cam_world, K, mask in track.pending:
             image = self._images.get(stamp)
             if image is None:
@@ -511,7 +533,67 @@ class MultiViewEstimator:
             for m in matcher.measure(image, K, t_cam, mask):
                 R_world_obj = T_cam_world[:3, :3].T @ m.R_cam_obj
                 track.mixture.add(R_world_obj, m.confidence)
+            if vcfg.enabled and t_cam[2] > MIN_DEPTH:
+                view = edge_view(image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp)
+                track.edge_views = [v for v in track.edge_views if v.stamp_ns != stamp] + [view]
+                del track.edge_views[: -vcfg.max_views]
+                added = True
         track.pending.clear()
+        if added:
+            self._verify(track)
+
+    def _model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:
+        """The class's edge samples and near-symmetric turns (computed on first use)."""
+        if obj_id not in self._edges:
+            model = self.catalog[obj_id]
+            cfg = self.config.verification
+            self._edges[obj_id] = model_edges(model.mesh, model.diameter, cfg.edges)
+            sym = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+            axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+            self._variants[obj_id] = near_symmetries(
+                model.points, model.diameter, sym, axes, cfg.near_frac, cfg.max_variants
+            )
+        return self._edges[obj_id], self._variants[obj_id]
+
+    def _verify(self, track: Track) -> None:
+        """Score the leading hypotheses in all kept views; refine the winner over them
+        (:mod:`estimator.verification`, :mod:`estimator.refinement`)."""
+        mixture = track.mixture
+        if mixture is None or not mixture.components or not track.edge_views:
+            return
+        edges, variants = self._model_edges(track.obj_id)
+        vcfg = self.config.verification
+        components_R = np.array([c.R_world_obj for c in mixture.components])
+        verdict = verify(
+            edges,
+            track.edge_views,
+            components_R,
+            mixture.weights,
+            variants,
+            track.estimate.t_world_obj,
+            vcfg,
+        )
+        track.verdict = verdict
+        track.refined = None
+        if verdict is None or not self.config.refinement.enabled:
+            return
+        lead = mixture.components[int(verdict.component[verdict.best])]
+        R_start = verdict.R_world_obj[verdict.best]
+        # the component's covariance, turned with its variant (a turn in the object frame
+        # leaves a world-frame left perturbation as it is)
+        track.refined = refine_pose(
+            edges,
+            track.edge_views,
+            R_start,
+            track.estimate.t_world_obj,
+            track.estimate.t_world_obj,
+            track.estimate.cov,
+            lead.cov,
+            vcfg.edges.truncate_px,
+            vcfg.edges.bins,
+            vcfg.mask_weight,
+            self.config.refinement,
+        )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
         """The depth at which the part's expected box matches the detection's (SSD-6D)."""
@@ -617,6 +699,8 @@ class MultiViewEstimator:
             track.obs = track.obs.select(~leave)
             track.refs = [r for r, x in zip(track.refs, leave, strict=True) if not x]
             gone_ids = {(r[0], r[1]) for r in gone}
+            gone_stamps = {r[0] for r in gone}
+            track.edge_views = [v for v in track.edge_views if v.stamp_ns not in gone_stamps]
             track.detections = [d for d in track.detections if d not in gone_ids]
             track.views_seen -= len(gone)
             track.estimate = estimate_translation(
@@ -682,6 +766,9 @@ class MultiViewEstimator:
         if gone.status == CONFIRMED:
             keep.status = CONFIRMED
         keep.pending = sorted(keep.pending + gone.pending, key=lambda p: p[0])
+        views = sorted(keep.edge_views + gone.edge_views, key=lambda v: v.stamp_ns)
+        keep.edge_views = views[-self.config.verification.max_views :]
+        keep.verdict, keep.refined = None, None  # the mixture changes: verified again next view
         if gone.mixture is not None:
             if keep.mixture is None:
                 keep.mixture = gone.mixture
@@ -707,13 +794,28 @@ class MultiViewEstimator:
             cov[3:, 3:] = best.cov
             weights = track.mixture.weights
             components = track.mixture.components
-            quats = Rotation.from_matrix(np.array([c.R_world_obj for c in components])).as_quat()
+            R_components = np.array([c.R_world_obj for c in components])
+            verdict = track.verdict
+            if verdict is not None and len(verdict.weights) == len(components):
+                # the verified hypothesis leads, with the refined pose when it was accepted
+                lead = int(verdict.component[verdict.best])
+                best = components[lead]
+                weights = verdict.weights
+                R_components[lead] = verdict.R_world_obj[verdict.best]
+                T[:3, :3] = R_components[lead]
+                cov[3:, 3:] = best.cov
+                refined = track.refined
+                if refined is not None and refined.accepted:
+                    T[:3, :3] = R_components[lead] = refined.R_world_obj
+                    T[:3, 3] = refined.t_world_obj
+                    cov = refined.cov.copy()
+            quats = Rotation.from_matrix(R_components).as_quat()
             hypotheses = tuple(
                 RotationHypothesis(q, float(w), c.n)
                 for c, w, q in zip(components, weights, quats, strict=True)
             )
             mean_similarity = best.confidence / best.n
-            confidence = float(weights.max() * mean_similarity)
+            confidence = float(weights[components.index(best)] * mean_similarity)
         return ObjectEstimate(
             stamp_ns=stamp,
             object_id=track.object_id,

@@ -1,0 +1,218 @@
+"""Verification of a track's rotation hypotheses against every view it has.
+
+Each view's LINE-2D match (:mod:`estimator.rotation`) is judged alone. A chrome screw seen
+end-on looks the same head first or tip first, and the max-mixture then holds both, often with
+the wrong one ahead. Other views see the difference plainly. Verification asks them all.
+
+The hypotheses are the mixture's leading components and their *near-symmetric variants*: the
+turns that map the part almost, but not quite, onto itself (:func:`near_symmetries`: half turns
+about the object's axes, and the smallest turn about an axis that nearly repeats the part, like a
+gear's tooth), whether or not the catalog calls them symmetries. Every hypothesis, at the
+track's translation, is scored in every kept view (:func:`score_hypotheses`) by the directional
+chamfer of its projected edges against the view's image edges, plus the chamfer of its occluding
+contour against the boundary of the front end's mask (:mod:`estimator.edges`). The lowest total
+cost leads. The costs also re-weight the components: a component's weight is multiplied by
+``exp(-V (cost - best) / temperature)`` over its V views, so a view that is plainly wrong costs
+a mode its lead, and weights stay a distribution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from posefuse.estimator.edges import (
+    EdgeConfig,
+    EdgeView,
+    ModelEdges,
+    active_points,
+    project_edges,
+    sample_maps,
+)
+from posefuse.estimator.geometry import so3_exp
+from posefuse.estimator.mixture import closest_equivalents
+
+__all__ = [
+    "VerificationConfig",
+    "Verdict",
+    "near_symmetries",
+    "score_hypotheses",
+    "verify",
+]
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    enabled: bool = True
+    edges: EdgeConfig = EdgeConfig()
+    max_views: int = 6  # views kept per track (the most recent), memory ~150 kB each
+    max_components: int = 3  # the leading components are verified, with their variants
+    mask_weight: float = 1.0  # weight of the mask-boundary chamfer against the edge chamfer
+    min_points: int = 12  # a view with fewer visible edge samples says nothing (cost 1)
+    temperature: float = 0.05  # of the re-weighting, in units of mean truncated cost
+    near_frac: float = 0.06  # a turn is near-symmetric when the surface moves this little (d)
+    max_variants: int = 4
+
+
+@dataclass(frozen=True, eq=False)
+class Verdict:
+    """The outcome of one verification.
+
+    R_world_obj: (H, 3, 3) the hypotheses; component: (H,) the mixture component of each;
+    variant: (H,) index into the variants (0: the component itself); cost: (H,) mean over views
+    of the truncated chamfer cost in [0, 1 + mask_weight]; per_view: (H, V); weights: (C,) the
+    components' weights after re-weighting; best: index of the leading hypothesis.
+    """
+
+    R_world_obj: np.ndarray
+    component: np.ndarray
+    variant: np.ndarray
+    cost: np.ndarray
+    per_view: np.ndarray
+    weights: np.ndarray
+    best: int
+
+
+def near_symmetries(
+    points: np.ndarray,
+    diameter: float,
+    symmetries: np.ndarray,
+    continuous_axes: np.ndarray,
+    near_frac: float = 0.06,
+    max_variants: int = 4,
+) -> np.ndarray:
+    """Object-frame turns under which the part looks almost, not exactly, the same.
+
+    Candidates: the half turns about the object's x, y and z axes, and about each axis the
+    smallest turn ``2 pi / n`` (n = 3..12, so at least 30 degrees: smaller turns are within the
+    mixture's gate and the refinement's reach) that moves the surface samples by at most
+    ``near_frac`` of the diameter (95th percentile of the distance to the nearest sample). Half
+    turns are kept whatever they score: flipping a part end over end is the confusion LINE-2D
+    makes. A candidate equivalent (within 2 degrees) to a symmetry, to the identity, or to an
+    earlier candidate is dropped.
+
+    Args:
+        points: (N, 3) surface samples, object frame. symmetries: (S, 3, 3) object-frame
+        symmetry rotations with the identity first. continuous_axes: (A, 3) unit axes.
+    Returns:
+        (M, 3, 3) rotations, M <= max_variants, the identity excluded.
+    """
+    tree = cKDTree(points)
+    center = points.mean(axis=0)
+    rel = points - center
+    cands: list[tuple[float, np.ndarray]] = []
+    for axis in np.eye(3):
+        cands.append((-1.0, so3_exp(np.pi * axis)))  # half turns first, whatever they score
+        for n in range(3, 13):
+            R = so3_exp(2 * np.pi / n * axis)
+            d, _ = tree.query(rel @ R.T + center)
+            err = float(np.percentile(d, 95)) / diameter
+            if err <= near_frac:
+                cands.append((err, R))
+                break
+    cands.sort(key=lambda c: c[0])
+    kept: list[np.ndarray] = []
+    for _, R in cands:
+        known = [np.eye(3)] + kept
+        for ref in known:
+            # R is redundant if R = ref @ S for a symmetry S, i.e. R's equivalent near ref
+            _, angle = closest_equivalents(R[None], ref, symmetries, continuous_axes)
+            if angle[0] < np.deg2rad(2.0):
+                break
+        else:
+            kept.append(R)
+        if len(kept) >= max_variants:
+            break
+    return np.array(kept).reshape(-1, 3, 3)
+
+
+def score_hypotheses(
+    edges: ModelEdges,
+    views: list[EdgeView],
+    R_world_obj: np.ndarray,
+    t_world_obj: np.ndarray,
+    config: VerificationConfig,
+) -> np.ndarray:
+    """(H, V) cost of each hypothesis in each view: the mean truncated directional chamfer of
+    its visible edges (in [0, 1]) plus ``mask_weight`` times that of its occluding contour to the
+    mask's boundary (when the view has a mask).
+
+    Args:
+        R_world_obj: (H, 3, 3). t_world_obj: (3,) or (H, 3) metres.
+    """
+    H, V = len(R_world_obj), len(views)
+    if V == 0:
+        return np.zeros((H, 0))
+    t_world_obj = np.broadcast_to(t_world_obj, (H, 3))
+    R_cw = np.array([v.T_cam_world[:3, :3] for v in views])  # (V, 3, 3)
+    t_cw = np.array([v.T_cam_world[:3, 3] for v in views])  # (V, 3)
+    R_cam = np.einsum("vij,hjk->hvik", R_cw, R_world_obj).reshape(-1, 3, 3)
+    t_cam = (np.einsum("vij,hj->hvi", R_cw, t_world_obj) + t_cw).reshape(-1, 3)
+    K = np.broadcast_to(np.array([v.K_roi for v in views]), (H, V, 3, 3)).reshape(-1, 3, 3)
+    uv, angle, _ = project_edges(edges, R_cam, t_cam, K)
+    active, contour = active_points(edges, R_cam, t_cam)
+    ec = config.edges
+    cost = np.ones((H, V))
+    for v, view in enumerate(views):
+        rows = np.arange(v, H * V, V)  # this view's poses
+        b = np.floor(angle[rows] / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
+        d, _ = sample_maps(view.dcdt, b, uv[rows], ec.truncate_px)
+        n = active[rows].sum(axis=1)
+        edge_cost = np.where(
+            n >= config.min_points,
+            (d * active[rows]).sum(axis=1) / np.maximum(n, 1) / ec.truncate_px,
+            1.0,
+        )
+        total = edge_cost
+        if view.mask_dt is not None and config.mask_weight > 0:
+            dm, _ = sample_maps(view.mask_dt, None, uv[rows], ec.truncate_px)
+            nc = contour[rows].sum(axis=1)
+            mask_cost = np.where(
+                nc >= config.min_points,
+                (dm * contour[rows]).sum(axis=1) / np.maximum(nc, 1) / ec.truncate_px,
+                1.0,
+            )
+            total = total + config.mask_weight * mask_cost
+        cost[:, v] = total
+    return cost
+
+
+def verify(
+    edges: ModelEdges,
+    views: list[EdgeView],
+    components_R: np.ndarray,
+    component_weights: np.ndarray,
+    variants: np.ndarray,
+    t_world_obj: np.ndarray,
+    config: VerificationConfig,
+) -> Verdict | None:
+    """Score the leading components and their variants in every view (see the module docstring).
+
+    Args:
+        components_R: (C, 3, 3) R_world_obj of the mixture's components; component_weights:
+        (C,) their weights; variants: (M, 3, 3) object-frame turns (:func:`near_symmetries`);
+        t_world_obj: (3,).
+    Returns:
+        None without views or components.
+    """
+    C = len(components_R)
+    if C == 0 or not views:
+        return None
+    lead = np.argsort(-np.asarray(component_weights), kind="stable")[: config.max_components]
+    turns = np.concatenate([np.eye(3)[None], variants])  # (1 + M, 3, 3)
+    R_h = np.einsum("cij,mjk->cmik", components_R[lead], turns).reshape(-1, 3, 3)
+    comp = np.repeat(lead, len(turns))
+    var = np.tile(np.arange(len(turns)), len(lead))
+    per_view = score_hypotheses(edges, views, R_h, t_world_obj, config)
+    cost = per_view.mean(axis=1)
+    best = int(np.argmin(cost))
+    # each verified component by its best variant; the others keep their weight as it is
+    # scaled by the worst verified cost (they were not asked, so they cannot gain)
+    comp_cost = np.full(C, cost.max())
+    np.minimum.at(comp_cost, comp, cost)
+    w = np.asarray(component_weights, float)
+    scaled = w * np.exp(-len(views) * (comp_cost - cost[best]) / config.temperature)
+    weights = scaled / scaled.sum() if scaled.sum() > 0 else w
+    return Verdict(R_h, comp, var, cost, per_view, weights, best)
