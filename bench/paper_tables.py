@@ -7,7 +7,9 @@ seed 300; quick: 2 scenes x 8 views at 640x360, seed 301). Every method sees the
 detections (the oracle front end: the true centers with 2 px of noise and the visible masks,
 seed 0) and scores the same LINE-2D features:
 
-- ours: the two-step estimator (translation, then rotation from the scale-aware re-crop);
+- ours: the two-step estimator (translation, then rotation from the scale-aware re-crop, then
+  the rotation hypotheses verified in every view of the track);
+- ours without verification: the ablation, each view's LINE-2D match judged alone;
 - simultaneous: our translation, rotation from templates at 9 distances without re-crop;
 - CosyPose-RGB and CosyPose-RGBD: per-view 6D poses fused across views (bench/baselines.py).
 
@@ -46,6 +48,7 @@ from posefuse.estimator.evaluation import PoseResult, evaluate
 from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
 from posefuse.estimator.rotation import RotationMatcher
 from posefuse.estimator.run_dataset import run_dataset
+from posefuse.cli.run import tracker_config
 from posefuse.estimator.tracker import MultiViewEstimator
 
 CHECKPOINTS = (4, 8)
@@ -62,10 +65,11 @@ FRONTEND_TEXT = {
 }
 QUICK = {"scenes": 2, "views": 8, "seed": 301, "width": 640, "height": 360}
 ORACLE = OracleConfig(center_sigma_px=2.0, seed=0)
-METHODS = ("cosypose_rgb", "cosypose_rgbd", "ours", "simultaneous")
+METHODS = ("cosypose_rgb", "cosypose_rgbd", "ours_no_verification", "ours", "simultaneous")
 LABELS = {
     "cosypose_rgb": "CosyPose-style RGB",
     "cosypose_rgbd": "CosyPose-style RGBD",
+    "ours_no_verification": "ours without verification (ablation)",
     "ours": "ours (two-step)",
     "simultaneous": "simultaneous (multi-scale)",
 }
@@ -122,7 +126,9 @@ def make_frontend(dataset, kind: str, model: str | None = None):
     raise ValueError(f"front end: expected 'oracle' or 'network', got {kind!r}")
 
 
-def _run_tracker(dataset, banks, simultaneous: bool, progress: bool, frontend) -> MethodRun:
+def _run_tracker(
+    dataset, banks, simultaneous: bool, progress: bool, frontend, config=None
+) -> MethodRun:
     run = MethodRun(matching_s={k: [] for k in dataset.catalog})
     start = time.perf_counter()
 
@@ -133,7 +139,7 @@ def _run_tracker(dataset, banks, simultaneous: bool, progress: bool, frontend) -
             if simultaneous:
                 inner = MultiScaleMatcher(inner)
             matchers[k] = TimedMatcher(inner, run.matching_s[k])
-        return MultiViewEstimator(dataset.catalog, banks=banks, matchers=matchers)
+        return MultiViewEstimator(dataset.catalog, config, banks=banks, matchers=matchers)
 
     out = run_dataset(
         dataset,
@@ -207,6 +213,9 @@ def run_all(dataset, banks, progress: bool = True, frontend=None) -> dict[str, M
     return {
         "cosypose_rgb": _run_cosypose(dataset, banks, False, progress, frontend),
         "cosypose_rgbd": _run_cosypose(dataset, banks, True, progress, frontend),
+        "ours_no_verification": _run_tracker(
+            dataset, banks, False, progress, frontend, tracker_config(no_verify=True)
+        ),
         "ours": _run_tracker(dataset, banks, False, progress, frontend),
         "simultaneous": _run_tracker(dataset, banks, True, progress, frontend),
     }
@@ -339,7 +348,11 @@ def _compare(ours: float, other: float, name: str) -> str:
 
 def table_sentences(scores: dict, table: str) -> list[str]:
     """Where ours wins and loses, read off the numbers of this run."""
-    others = ("cosypose_rgb", "cosypose_rgbd") if table == "I" else ("simultaneous",)
+    others = (
+        ("cosypose_rgb", "cosypose_rgbd", "ours_no_verification")
+        if table == "I"
+        else ("simultaneous",)
+    )
     out = []
     for n in CHECKPOINTS:
         ours = scores["ours"]["reports"][n]["all"]
@@ -389,7 +402,7 @@ def markdown(dataset, scores: dict, meta: dict) -> str:
         "",
         "## Table I: multi-view fusion of per-view poses versus ours",
         "",
-        *summary_table(scores, ("cosypose_rgb", "cosypose_rgbd", "ours")),
+        *summary_table(scores, ("cosypose_rgb", "cosypose_rgbd", "ours_no_verification", "ours")),
         "",
         *table_sentences(scores, "I"),
         "",

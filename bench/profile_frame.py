@@ -4,7 +4,8 @@ python -m posefuse.bench.profile_frame --dataset DIR --scene N [--scene M ...] [
 
 For each scene, its views (1280x720, JPEG-encoded as a camera would send them) go through
 what the daemon does with a frame: decode, network, voting, then the estimator (association,
-translation, founding/merging, re-crop, template scoring, mixture), encode of every updated
+translation, founding/merging, re-crop, template scoring, mixture, the edge maps of the view,
+verification across views and refinement), encode of every updated
 estimate and a Zenoh put of each on a session of its own. The stages inside the estimator are
 timed by wrapping the functions that implement them (``estimator.tracker`` and
 ``estimator.rotation`` names), so the profile measures the code as it runs in the service.
@@ -31,6 +32,9 @@ STAGES = (
     "re-crop",
     "template scoring",
     "mixture",
+    "edge maps",
+    "verification",
+    "refinement",
     "estimator (rest)",
     "encode",
     "publish",
@@ -87,6 +91,9 @@ def instrumented(timer: StageTimer):
         (rotation.RotationMatcher, "scores", "template scoring"),
         (rotation, "select_hypotheses", "template scoring"),
         (RotationMixture, "add", "mixture"),
+        (tracker, "edge_view", "edge maps"),
+        (tracker, "verify", "verification"),
+        (tracker, "refine_pose", "refinement"),
     ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in patches]
     try:
@@ -152,7 +159,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int) -
                         )
                     inner = sum(
                         timer.seconds[s]
-                        for s in STAGES[3:9]  # association .. mixture
+                        for s in STAGES[3:12]  # association .. refinement
                     )
                     timer.seconds["estimator (rest)"] += time.perf_counter() - t_est - inner
                     with timer.stage("encode"):

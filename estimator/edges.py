@@ -4,7 +4,7 @@ Model side (:func:`model_edges`): points sampled along the edges of the mesh (de
 few thousand faces), each with its edge's 3D direction and the normals of the two faces that
 meet there. At a pose, a point lies on the *occluding contour* when one of its faces turns
 towards the camera and the other away; it lies on a *visible crease* when its faces meet at a
-sharp angle and one of them faces the camera (:func:`active_points`). Self-occlusion by other
+sharp angle and one of them faces the camera (:func:`pose_edges`). Self-occlusion by other
 parts of the same object is not tested: for the convex-ish parts of a bin it rarely matters, and
 the chamfer below is truncated, so a hidden crease costs a bounded amount.
 
@@ -33,9 +33,9 @@ __all__ = [
     "EdgeConfig",
     "EdgeView",
     "ModelEdges",
-    "active_points",
     "edge_view",
     "model_edges",
+    "pose_edges",
     "project_edges",
     "sample_maps",
 ]
@@ -52,7 +52,7 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    max_points: int = 400  # edge samples of a model, at most
+    max_points: int = 2000  # edge samples of a model, at most
 
     def __post_init__(self) -> None:
         if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0:
@@ -72,6 +72,7 @@ class ModelEdges:
     normals: np.ndarray
     crease: np.ndarray
     diameter: float
+    mesh: trimesh.Trimesh | None = None  # the decimated mesh, for the occlusion test
 
 
 @dataclass(frozen=True, eq=False)
@@ -122,42 +123,68 @@ def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> M
     directions = (b - a)[edge] / np.maximum(length[edge], 1e-12)[:, None]
     normals = mesh.face_normals[adjacency[edge]]  # (P, 2, 3)
     crease = angles[edge] > np.deg2rad(config.crease_deg)
-    return ModelEdges(points, directions, normals, crease, float(diameter))
+    return ModelEdges(points, directions, normals, crease, float(diameter), mesh)
 
 
-def active_points(
+def pose_edges(
     edges: ModelEdges, R_cam_obj: np.ndarray, t_cam_obj: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Which edge samples show at each of N poses.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The edge samples that show at each of N poses, object frame.
+
+    A sample lies on the *occluding contour* when one of its two faces turns towards the camera
+    and the other away, on a *visible crease* when its faces meet at more than ``crease_deg``
+    and one of them faces the camera.
 
     Args:
         R_cam_obj: (N, 3, 3). t_cam_obj: (N, 3) metres.
     Returns:
-        active: (N, P) bool, on the occluding contour or a visible crease;
-        contour: (N, P) bool, on the occluding contour.
+        points: (N, P, 3); directions: (N, P, 3) unit, along the edge; active: (N, P) bool, on
+        the contour or a visible crease; contour: (N, P) bool, on the occluding contour.
     """
+    N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
     view = edges.points[None] - c_obj[:, None]  # (N, P, 3)
     facing = np.einsum("pkj,npj->npk", edges.normals, view)  # (N, P, 2), < 0 faces the camera
     contour = facing[..., 0] * facing[..., 1] < 0
-    visible_crease = edges.crease[None] & (facing.min(axis=2) < 0)
-    return contour | visible_crease, contour
+    active = contour | (edges.crease[None] & (facing.min(axis=2) < 0))
+    if edges.mesh is not None:
+        # hidden by the part itself: the ray from the camera meets the surface first
+        n_idx, p_idx = np.nonzero(active)
+        if len(n_idx):
+            ray = edges.points[p_idx] - c_obj[n_idx]
+            dist = np.linalg.norm(ray, axis=1)
+            _, rays, where = edges.mesh.ray.intersects_id(
+                c_obj[n_idx], ray / dist[:, None], multiple_hits=False, return_locations=True
+            )
+            hit = np.full(len(n_idx), np.inf)
+            hit[rays] = np.linalg.norm(where - c_obj[n_idx][rays], axis=1)
+            hidden = hit < dist - 0.005 * edges.diameter
+            active[n_idx[hidden], p_idx[hidden]] = False
+            contour &= active
+    points = np.broadcast_to(edges.points, (N, P, 3))
+    directions = np.broadcast_to(edges.directions, (N, P, 3))
+    return points, directions, active, contour
 
 
 def project_edges(
-    edges: ModelEdges, R_cam_obj: np.ndarray, t_cam_obj: np.ndarray, K: np.ndarray
+    points: np.ndarray,
+    directions: np.ndarray,
+    R_cam_obj: np.ndarray,
+    t_cam_obj: np.ndarray,
+    K: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The edge samples of N poses in an image.
+    """Edge samples of N poses in an image.
 
     Args:
-        R_cam_obj: (N, 3, 3). t_cam_obj: (N, 3). K: (3, 3) or (N, 3, 3).
+        points, directions: (N, P, 3) object frame (:func:`pose_edges`). R_cam_obj: (N, 3, 3).
+        t_cam_obj: (N, 3). K: (3, 3) or (N, 3, 3).
     Returns:
         uv: (N, P, 2) pixels; angle: (N, P) direction of the projected edge in [0, pi);
         pts_cam: (N, P, 3) metres.
     """
     K = np.broadcast_to(K, (len(R_cam_obj), 3, 3))
-    pts_cam = np.einsum("nij,pj->npi", R_cam_obj, edges.points) + t_cam_obj[:, None]
-    dirs_cam = np.einsum("nij,pj->npi", R_cam_obj, edges.directions)
+    pts_cam = np.einsum("nij,npj->npi", R_cam_obj, points) + t_cam_obj[:, None]
+    dirs_cam = np.einsum("nij,npj->npi", R_cam_obj, directions)
     z = np.maximum(pts_cam[..., 2], 1e-6)
     xy = pts_cam[..., :2] / z[..., None]
     uv = np.einsum("nij,npj->npi", K[:, :2, :2], xy) + K[:, None, :2, 2]

@@ -591,6 +591,7 @@ class MultiViewEstimator:
             lead.cov,
             vcfg.edges.truncate_px,
             vcfg.edges.bins,
+            vcfg.crease_weight,
             vcfg.mask_weight,
             self.config.refinement,
         )

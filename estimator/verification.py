@@ -27,7 +27,7 @@ from posefuse.estimator.edges import (
     EdgeConfig,
     EdgeView,
     ModelEdges,
-    active_points,
+    pose_edges,
     project_edges,
     sample_maps,
 )
@@ -48,8 +48,9 @@ class VerificationConfig:
     enabled: bool = True
     edges: EdgeConfig = EdgeConfig()
     max_views: int = 6  # views kept per track (the most recent), memory ~150 kB each
-    max_components: int = 3  # the leading components are verified, with their variants
-    mask_weight: float = 1.0  # weight of the mask-boundary chamfer against the edge chamfer
+    max_components: int = 5  # the leading components are verified, with their variants
+    crease_weight: float = 0.5  # weight of the creases' chamfer against the contour's
+    mask_weight: float = 1.5  # weight of the mask-boundary chamfer against the contour's
     min_points: int = 12  # a view with fewer visible edge samples says nothing (cost 1)
     temperature: float = 0.05  # of the re-weighting, in units of mean truncated cost
     near_frac: float = 0.06  # a turn is near-symmetric when the surface moves this little (d)
@@ -62,7 +63,7 @@ class Verdict:
 
     R_world_obj: (H, 3, 3) the hypotheses; component: (H,) the mixture component of each;
     variant: (H,) index into the variants (0: the component itself); cost: (H,) mean over views
-    of the truncated chamfer cost in [0, 1 + mask_weight]; per_view: (H, V); weights: (C,) the
+    of the truncated chamfer cost (:func:`score_hypotheses`); per_view: (H, V); weights: (C,) the
     components' weights after re-weighting; best: index of the leading hypothesis.
     """
 
@@ -136,8 +137,9 @@ def score_hypotheses(
     config: VerificationConfig,
 ) -> np.ndarray:
     """(H, V) cost of each hypothesis in each view: the mean truncated directional chamfer of
-    its visible edges (in [0, 1]) plus ``mask_weight`` times that of its occluding contour to the
-    mask's boundary (when the view has a mask).
+    its occluding contour (in [0, 1]), plus ``crease_weight`` times that of its visible creases,
+    plus ``mask_weight`` times the mean truncated distance of its contour to the mask's boundary
+    (when the view has a mask). A term with fewer than ``min_points`` samples costs 1.
 
     Args:
         R_world_obj: (H, 3, 3). t_world_obj: (3,) or (H, 3) metres.
@@ -151,31 +153,23 @@ def score_hypotheses(
     R_cam = np.einsum("vij,hjk->hvik", R_cw, R_world_obj).reshape(-1, 3, 3)
     t_cam = (np.einsum("vij,hj->hvi", R_cw, t_world_obj) + t_cw).reshape(-1, 3)
     K = np.broadcast_to(np.array([v.K_roi for v in views]), (H, V, 3, 3)).reshape(-1, 3, 3)
-    uv, angle, _ = project_edges(edges, R_cam, t_cam, K)
-    active, contour = active_points(edges, R_cam, t_cam)
+    points, directions, active, contour = pose_edges(edges, R_cam, t_cam)
+    uv, angle, _ = project_edges(points, directions, R_cam, t_cam, K)
     ec = config.edges
-    cost = np.ones((H, V))
+    crease = active & ~contour
+    cost = np.zeros((H, V))
     for v, view in enumerate(views):
         rows = np.arange(v, H * V, V)  # this view's poses
         b = np.floor(angle[rows] / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
         d, _ = sample_maps(view.dcdt, b, uv[rows], ec.truncate_px)
-        n = active[rows].sum(axis=1)
-        edge_cost = np.where(
-            n >= config.min_points,
-            (d * active[rows]).sum(axis=1) / np.maximum(n, 1) / ec.truncate_px,
-            1.0,
-        )
-        total = edge_cost
+        terms = [(d, contour[rows], 1.0), (d, crease[rows], config.crease_weight)]
         if view.mask_dt is not None and config.mask_weight > 0:
             dm, _ = sample_maps(view.mask_dt, None, uv[rows], ec.truncate_px)
-            nc = contour[rows].sum(axis=1)
-            mask_cost = np.where(
-                nc >= config.min_points,
-                (dm * contour[rows]).sum(axis=1) / np.maximum(nc, 1) / ec.truncate_px,
-                1.0,
-            )
-            total = total + config.mask_weight * mask_cost
-        cost[:, v] = total
+            terms.append((dm, contour[rows], config.mask_weight))
+        for dist, use, weight in terms:
+            n = use.sum(axis=1)
+            mean = (dist * use).sum(axis=1) / np.maximum(n, 1) / ec.truncate_px
+            cost[:, v] += weight * np.where(n >= config.min_points, mean, 1.0)
     return cost
 
 
