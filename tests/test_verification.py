@@ -188,3 +188,50 @@ def test_verify_without_views_says_nothing(robi_catalog):
     model = _model(robi_catalog, "zigzag")
     edges = _edges(model)
     assert verify(edges, [], np.eye(3)[None], np.ones(1), np.zeros((0, 3, 3)), np.zeros(3), CONFIG) is None
+
+
+def _run_scene(dataset, scene_id, config=None, banks=None):
+    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+    from posefuse.estimator.tracker import Frame, MultiViewEstimator
+
+    front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
+    estimator = MultiViewEstimator(dataset.catalog, config, banks=banks)
+    scene = dataset.scene(scene_id)
+    for im in scene.im_ids:
+        view = scene.view(im)
+        frame = Frame(im, view.camera, view.T_world_cam, scene.load_rgb(im))
+        estimator.update(frame, front.detect(view))
+    return estimator
+
+
+def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
+    small_dataset_root, default_banks
+):
+    import dataclasses
+
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.tracker import TrackerConfig
+
+    dataset = load_dataset(small_dataset_root)
+    few = TrackerConfig(verification=dataclasses.replace(VerificationConfig(), max_views=2))
+    estimator = _run_scene(dataset, dataset.scene_ids[0], few, default_banks)
+    verified = 0
+    for track in estimator.tracks.values():
+        assert len(track.edge_views) <= 2
+        assert sum(v.nbytes for v in track.edge_views) <= 2 * 9 * 96 * 96
+        if track.verdict is None:
+            continue
+        verified += 1
+        estimate = next(e for e in estimator.estimates() if e.object_id == track.object_id)
+        lead = track.verdict.R_world_obj[track.verdict.best]
+        assert np.allclose(estimate.T_world_obj[:3, :3], lead, atol=1e-9)
+        assert np.isclose(sum(h.weight for h in estimate.hypotheses), 1.0)
+    assert verified > 0
+    # switched off, nothing is kept and the mixture's lead is published as before
+    off = TrackerConfig(verification=dataclasses.replace(VerificationConfig(), enabled=False))
+    estimator = _run_scene(dataset, dataset.scene_ids[0], off, default_banks)
+    assert all(not t.edge_views and t.verdict is None for t in estimator.tracks.values())
+    for e in estimator.estimates():
+        track = estimator.tracks[e.object_id]
+        if track.mixture is not None and track.mixture.components:
+            assert np.allclose(e.T_world_obj[:3, :3], track.mixture.best().R_world_obj)
