@@ -69,8 +69,9 @@ def _min_confidence(step):
 
 def test_stops_once_every_confirmed_object_is_confident(recorded, default_banks):
     """The threshold is earned: it lies between the least confident confirmed object after the
-    second view and after the third, so the run must go on to the third view (an object above
-    it after two views is not enough: every confirmed one must be) and stop there."""
+    second view and after the third, so the run stops at the first of them where every
+    confirmed object reaches it (an object above it is not enough: every confirmed one must
+    be), and a threshold above both is never met."""
     dataset, sources = recorded
     source = sources[0]
 
@@ -83,23 +84,26 @@ def test_stops_once_every_confirmed_object_is_confident(recorded, default_banks)
     assert reference.stopped == "no views left" and len(reference.steps) == 3
     assert not any(e.status == CONFIRMED for e in reference.steps[0].estimates)
     c2, c3 = _min_confidence(reference.steps[1]), _min_confidence(reference.steps[2])
-    # the third view raises the least confident object's confidence (0.17 -> 0.20)
-    assert 0.1 < c2 < c3 < 1
-    most_confident_after_two = max(e.confidence for e in reference.steps[1].estimates)
+    # the third view changes the least confident object's confidence (verification across
+    # views may lower it as well as raise it)
+    assert 0.1 < min(c2, c3) and max(c2, c3) < 1 and abs(c2 - c3) > 0.01
     threshold = (c2 + c3) / 2
-    assert most_confident_after_two > threshold  # one object is, the others are not yet
+    first_met = 2 if c2 >= threshold else 3
+    if first_met == 3:
+        most_confident_after_two = max(e.confidence for e in reference.steps[1].estimates)
+        assert most_confident_after_two > threshold  # one object is, the others are not yet
 
     stopped = run(threshold)
-    assert stopped.stopped == "confident" and len(stopped.steps) == 3
+    assert stopped.stopped == "confident" and len(stopped.steps) == first_met
     last = stopped.steps[-1]
     assert all(e.confidence >= threshold for e in last.estimates if e.status == CONFIRMED)
-    for a, b in zip(stopped.steps, reference.steps, strict=True):  # the same views fused
+    for a, b in zip(stopped.steps, reference.steps[:first_met], strict=True):  # the same views
         assert a.candidate == b.candidate
         assert [e.confidence for e in a.estimates] == [e.confidence for e in b.estimates]
 
     at_two = run(c2)  # met (>=) by every confirmed object after two views
     assert at_two.stopped == "confident" and len(at_two.steps) == 2
-    never = run(min(1.0, c3 + 1e-3))  # no object earns this within the recorded views
+    never = run(min(1.0, max(c2, c3) + 1e-3))  # no object earns this within the recorded views
     assert never.stopped == "no views left" and len(never.steps) == 3
 
 
