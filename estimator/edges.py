@@ -52,7 +52,7 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    max_points: int = 2000  # edge samples of a model, at most
+    max_points: int = 800  # edge samples of a model, at most
 
     def __post_init__(self) -> None:
         if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0:
@@ -144,7 +144,10 @@ def pose_edges(
     N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
     view = edges.points[None] - c_obj[:, None]  # (N, P, 3)
-    facing = np.einsum("pkj,npj->npk", edges.normals, view)  # (N, P, 2), < 0 faces the camera
+    # (N, P, 2), < 0 faces the camera (elementwise: einsum is several times slower here)
+    facing = np.stack(
+        [(view * edges.normals[None, :, k]).sum(axis=2) for k in range(2)], axis=2
+    )
     contour = facing[..., 0] * facing[..., 1] < 0
     active = contour | (edges.crease[None] & (facing.min(axis=2) < 0))
     if edges.mesh is not None:
@@ -183,14 +186,16 @@ def project_edges(
         pts_cam: (N, P, 3) metres.
     """
     K = np.broadcast_to(K, (len(R_cam_obj), 3, 3))
-    pts_cam = np.einsum("nij,npj->npi", R_cam_obj, points) + t_cam_obj[:, None]
-    dirs_cam = np.einsum("nij,npj->npi", R_cam_obj, directions)
+    R_t = np.swapaxes(R_cam_obj, 1, 2)
+    pts_cam = np.matmul(points, R_t) + t_cam_obj[:, None]
+    dirs_cam = np.matmul(directions, R_t)
     z = np.maximum(pts_cam[..., 2], 1e-6)
     xy = pts_cam[..., :2] / z[..., None]
-    uv = np.einsum("nij,npj->npi", K[:, :2, :2], xy) + K[:, None, :2, 2]
+    K2_t = np.swapaxes(K[:, :2, :2], 1, 2)
+    uv = np.matmul(xy, K2_t) + K[:, None, :2, 2]
     # d(uv)/d(direction): the projected direction, up to scale
     dxy = (dirs_cam[..., :2] - xy * dirs_cam[..., 2:3]) / z[..., None]
-    duv = np.einsum("nij,npj->npi", K[:, :2, :2], dxy)
+    duv = np.matmul(dxy, K2_t)
     angle = np.mod(np.arctan2(duv[..., 1], duv[..., 0]), np.pi)
     return uv, angle, pts_cam
 

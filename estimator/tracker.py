@@ -55,6 +55,7 @@ from posefuse.estimator.templates import (
     build_template_banks,
 )
 from posefuse.estimator.verification import (
+    ScoreCache,
     VerificationConfig,
     Verdict,
     near_symmetries,
@@ -179,6 +180,7 @@ class Track:
     # the most recent views' edge maps (estimator.edges), at most verification.max_views
     edge_views: list[EdgeView] = field(default_factory=list)
     verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
+    scores: ScoreCache = field(default_factory=ScoreCache)  # per-view costs, reused
     refined: Refinement | None = None
 
     def view(self) -> TrackView:
@@ -434,7 +436,7 @@ class MultiViewEstimator:
             del self.tracks[k]
         return len(keys)
 
-    STATE_VERSION = 1
+    STATE_VERSION = 2  # 2: tracks keep edge views, verdicts and score caches (verification)
 
     def export_state(self) -> dict:
         """The tracks and the counters that go with them, as plain picklable data: translation
@@ -572,6 +574,7 @@ class MultiViewEstimator:
             variants,
             track.estimate.t_world_obj,
             vcfg,
+            track.scores,
         )
         track.verdict = verdict
         track.refined = None
@@ -770,6 +773,7 @@ class MultiViewEstimator:
         views = sorted(keep.edge_views + gone.edge_views, key=lambda v: v.stamp_ns)
         keep.edge_views = views[-self.config.verification.max_views :]
         keep.verdict, keep.refined = None, None  # the mixture changes: verified again next view
+        keep.scores = ScoreCache()
         if gone.mixture is not None:
             if keep.mixture is None:
                 keep.mixture = gone.mixture

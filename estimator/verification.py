@@ -18,7 +18,7 @@ a mode its lead, and weights stay a distribution.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -31,12 +31,14 @@ from posefuse.estimator.edges import (
     project_edges,
     sample_maps,
 )
-from posefuse.estimator.geometry import so3_exp
+from posefuse.estimator.geometry import rotation_angle, so3_exp
 from posefuse.estimator.mixture import closest_equivalents
 
 __all__ = [
+    "ScoreCache",
     "VerificationConfig",
     "Verdict",
+    "cached_scores",
     "near_symmetries",
     "score_hypotheses",
     "verify",
@@ -55,6 +57,60 @@ class VerificationConfig:
     temperature: float = 0.05  # of the re-weighting, in units of mean truncated cost
     near_frac: float = 0.06  # a turn is near-symmetric when the surface moves this little (d)
     max_variants: int = 4
+
+
+@dataclass(eq=False)
+class ScoreCache:
+    """Per kept view (by stamp): the translation, the hypotheses (K, 3, 3) and their costs (K,)
+    of the last verification. A view's cost of a hypothesis is reused while the hypothesis is
+    within ``rotation_tol_deg`` of a scored one and the translation within ``translation_frac``
+    of the diameter: a new view then costs one view's scoring, not all of them again."""
+
+    entries: dict = field(default_factory=dict)
+    rotation_tol_deg: float = 1.0
+    translation_frac: float = 0.01
+
+
+def cached_scores(
+    edges: ModelEdges,
+    views: list[EdgeView],
+    R_world_obj: np.ndarray,
+    t_world_obj: np.ndarray,
+    config: VerificationConfig,
+    cache: ScoreCache,
+) -> np.ndarray:
+    """(H, V) :func:`score_hypotheses`, reusing ``cache`` where it holds (see ScoreCache); the
+    cache is updated and keeps only the views given."""
+    H, V = len(R_world_obj), len(views)
+    out = np.empty((H, V))
+    tol = np.deg2rad(cache.rotation_tol_deg)
+    for v, view in enumerate(views):
+        todo = np.ones(H, bool)
+        entry = cache.entries.get(view.stamp_ns)
+        if entry is not None and np.linalg.norm(entry[0] - t_world_obj) <= (
+            cache.translation_frac * edges.diameter
+        ):
+            angle = rotation_angle(
+                np.einsum("hij,klj->hkil", R_world_obj, entry[1])
+            )  # (H, K): R_h R_k^T
+            k = np.argmin(angle, axis=1)
+            hit = angle[np.arange(H), k] < tol
+            out[hit, v] = entry[2][k[hit]]
+            todo = ~hit
+        if todo.any():
+            out[todo, v] = score_hypotheses(
+                edges, [view], R_world_obj[todo], t_world_obj, config
+            )[:, 0]
+        if entry is None or todo.any():
+            cache.entries[view.stamp_ns] = (
+                np.array(t_world_obj, float),
+                R_world_obj.copy(),
+                out[:, v].copy(),
+            )
+    kept = {view.stamp_ns for view in views}
+    for stamp in [s for s in cache.entries if s not in kept]:
+        del cache.entries[stamp]
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,13 +237,15 @@ def verify(
     variants: np.ndarray,
     t_world_obj: np.ndarray,
     config: VerificationConfig,
+    cache: ScoreCache | None = None,
 ) -> Verdict | None:
     """Score the leading components and their variants in every view (see the module docstring).
 
     Args:
         components_R: (C, 3, 3) R_world_obj of the mixture's components; component_weights:
         (C,) their weights; variants: (M, 3, 3) object-frame turns (:func:`near_symmetries`);
-        t_world_obj: (3,).
+        t_world_obj: (3,); cache: per-view costs of earlier calls to reuse (ScoreCache), or
+        None to score everything.
     Returns:
         None without views or components.
     """
@@ -199,7 +257,10 @@ def verify(
     R_h = np.einsum("cij,mjk->cmik", components_R[lead], turns).reshape(-1, 3, 3)
     comp = np.repeat(lead, len(turns))
     var = np.tile(np.arange(len(turns)), len(lead))
-    per_view = score_hypotheses(edges, views, R_h, t_world_obj, config)
+    if cache is None:
+        per_view = score_hypotheses(edges, views, R_h, t_world_obj, config)
+    else:
+        per_view = cached_scores(edges, views, R_h, t_world_obj, config, cache)
     cost = per_view.mean(axis=1)
     best = int(np.argmin(cost))
     # each verified component by its best variant; the others keep their weight as it is
