@@ -52,7 +52,7 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    max_points: int = 800  # edge samples of a model, at most
+    max_points: int = 2000  # edge samples of a model, at most
 
     def __post_init__(self) -> None:
         if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0:
