@@ -43,12 +43,12 @@ from posefuse.bench.baselines import (
     rgb_candidate,
     rgbd_candidate,
 )
+from posefuse.cli.run import tracker_config
 from posefuse.estimator.errors import PosefuseError
 from posefuse.estimator.evaluation import PoseResult, evaluate
 from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
 from posefuse.estimator.rotation import RotationMatcher
 from posefuse.estimator.run_dataset import run_dataset
-from posefuse.cli.run import tracker_config
 from posefuse.estimator.tracker import MultiViewEstimator
 
 CHECKPOINTS = (4, 8)

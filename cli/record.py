@@ -136,7 +136,7 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from posefuse.estimator.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.foxglove import FoxgloveMirror
     from posefuse.service.recording import Recorder, RecordingError, read_messages
     from posefuse.service.replay import replay_offline, write_estimates_json
@@ -148,7 +148,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if not args.offline:
         raise PosefuseError("say --offline (feed the estimator here) or --live (over Zenoh)")
     catalog = load_catalog(settings.catalog)
-    worker = EstimatorWorker(MultiViewEstimator(catalog), make_detector(settings, catalog))
+    # the daemon's settings, verification included, so offline and live replays agree
+    estimator = MultiViewEstimator(catalog, TrackerConfig.with_verification(settings.verify))
+    worker = EstimatorWorker(estimator, make_detector(settings, catalog))
     messages = []
     damage = None
     try:

@@ -31,7 +31,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from posefuse.estimator.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.api import create_cells_app
     from posefuse.service.cells import CellSet
     from posefuse.service.daemon import Daemon
@@ -46,7 +46,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     warm.warm_up()  # templates and size ratios before the first frame, not during it
 
     def make_daemon(cell_settings) -> Daemon:
-        estimator = MultiViewEstimator(catalog, banks=warm.banks())
+        estimator = MultiViewEstimator(
+            catalog, TrackerConfig.with_verification(settings.verify), banks=warm.banks()
+        )
         estimator.warm_up()
         store = None
         if cell_settings.state_dir is not None:

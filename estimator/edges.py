@@ -145,9 +145,7 @@ def pose_edges(
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
     view = edges.points[None] - c_obj[:, None]  # (N, P, 3)
     # (N, P, 2), < 0 faces the camera (elementwise: einsum is several times slower here)
-    facing = np.stack(
-        [(view * edges.normals[None, :, k]).sum(axis=2) for k in range(2)], axis=2
-    )
+    facing = np.stack([(view * edges.normals[None, :, k]).sum(axis=2) for k in range(2)], axis=2)
     contour = facing[..., 0] * facing[..., 1] < 0
     active = contour | (edges.crease[None] & (facing.min(axis=2) < 0))
     if edges.mesh is not None:
@@ -267,7 +265,9 @@ def edge_view(
         )
         boundary = m & ~cv2.erode(m, np.ones((3, 3), np.uint8)).astype(bool)
         src = np.where(boundary.astype(bool), 0, 255).astype(np.uint8)
-        mask_dt = _to_u8(cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), config.truncate_px)
+        mask_dt = _to_u8(
+            cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), config.truncate_px
+        )
     return EdgeView(
         np.asarray(T_cam_world, float).copy(),
         K_roi,

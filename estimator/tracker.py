@@ -54,13 +54,6 @@ from posefuse.estimator.templates import (
     build_template_bank,
     build_template_banks,
 )
-from posefuse.estimator.verification import (
-    ScoreCache,
-    VerificationConfig,
-    Verdict,
-    near_symmetries,
-    verify,
-)
 from posefuse.estimator.translation import (
     MIN_DEPTH,
     CenterObservations,
@@ -69,6 +62,13 @@ from posefuse.estimator.translation import (
     estimate_translation,
     marginalize_oldest,
     predict,
+)
+from posefuse.estimator.verification import (
+    ScoreCache,
+    Verdict,
+    VerificationConfig,
+    near_symmetries,
+    verify,
 )
 
 TENTATIVE = "tentative"
@@ -154,6 +154,11 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
             raise ValueError(f"invalid tracker config: {self}")
+
+    @classmethod
+    def with_verification(cls, enabled: bool) -> TrackerConfig:
+        """The defaults, with the verification across views on or off."""
+        return cls(verification=VerificationConfig(enabled=enabled))
 
 
 @dataclass(eq=False)
@@ -536,7 +541,9 @@ class MultiViewEstimator:
                 R_world_obj = T_cam_world[:3, :3].T @ m.R_cam_obj
                 track.mixture.add(R_world_obj, m.confidence)
             if vcfg.enabled and t_cam[2] > MIN_DEPTH:
-                view = edge_view(image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp)
+                view = edge_view(
+                    image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp
+                )
                 track.edge_views = [v for v in track.edge_views if v.stamp_ns != stamp] + [view]
                 del track.edge_views[: -vcfg.max_views]
                 added = True

@@ -98,9 +98,9 @@ def cached_scores(
             out[hit, v] = entry[2][k[hit]]
             todo = ~hit
         if todo.any():
-            out[todo, v] = score_hypotheses(
-                edges, [view], R_world_obj[todo], t_world_obj, config
-            )[:, 0]
+            out[todo, v] = score_hypotheses(edges, [view], R_world_obj[todo], t_world_obj, config)[
+                :, 0
+            ]
         if entry is None or todo.any():
             cache.entries[view.stamp_ns] = (
                 np.array(t_world_obj, float),

@@ -87,7 +87,7 @@ def run_demo(
     from tqdm import tqdm
 
     from posefuse.estimator.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.api import create_app
     from posefuse.service.codec import decode_reset, estimate_to_dict
     from posefuse.service.daemon import Daemon
@@ -96,7 +96,7 @@ def run_demo(
     from posefuse.service.worker import EstimatorWorker, make_detector
 
     catalog = load_catalog(settings.catalog)
-    estimator = MultiViewEstimator(catalog)
+    estimator = MultiViewEstimator(catalog, TrackerConfig.with_verification(settings.verify))
     start = time.perf_counter()
     built = []
     estimator.prepare_templates(progress=lambda name, seconds, cached: built.append(not cached))

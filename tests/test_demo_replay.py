@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from posefuse.estimator.objects import load_catalog
-from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
 from posefuse.service.foxglove import FoxgloveMirror
 from posefuse.service.recording import Recorder, read_messages
 from posefuse.service.replay import replay_offline, write_estimates_json
@@ -103,8 +103,9 @@ def test_random_rotations_fall_below_the_floor():
 def _replay(default_banks, mcap_out=None):
     catalog = load_catalog(DEFAULT_CATALOG)
     settings = Settings(model=DEFAULT_MODEL, catalog=DEFAULT_CATALOG)
+    config = TrackerConfig.with_verification(settings.verify)  # as the daemon has it
     worker = EstimatorWorker(
-        MultiViewEstimator(catalog, banks=default_banks), make_detector(settings, catalog)
+        MultiViewEstimator(catalog, config, banks=default_banks), make_detector(settings, catalog)
     )
     messages = [(m.log_time_ns, m.key, m.payload) for m in read_messages(DEFAULT_RECORDING)]
     if mcap_out is None:

@@ -187,7 +187,10 @@ def test_the_edges_that_show_outline_a_box_seen_face_on():
 def test_verify_without_views_says_nothing(robi_catalog):
     model = _model(robi_catalog, "zigzag")
     edges = _edges(model)
-    assert verify(edges, [], np.eye(3)[None], np.ones(1), np.zeros((0, 3, 3)), np.zeros(3), CONFIG) is None
+    assert (
+        verify(edges, [], np.eye(3)[None], np.ones(1), np.zeros((0, 3, 3)), np.zeros(3), CONFIG)
+        is None
+    )
 
 
 def _run_scene(dataset, scene_id, config=None, banks=None):
