@@ -375,7 +375,9 @@ def register(subparsers) -> None:
         help="without the multi-view verification and refinement (the ablation)",
     )
     p.add_argument(
-        "--no-refine", action="store_true", help="verify across views, but do not refine"
+        "--no-refine",
+        action="store_true",
+        help="verify across views, but do not refine (refinement is off by default already)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

@@ -153,7 +153,8 @@ def refine_pose(
         R_start: (3, 3) R_world_obj; t_start, t_prior: (3,) metres; cov_t_prior: (3, 3) m^2;
         cov_R_prior: (3, 3) rad^2 (left perturbation, world frame), floored at
         ``rotation_floor_deg``; truncate_px, bins, crease_weight, mask_weight: as the views
-        were built and are scored (:class:`estimator.edges.EdgeConfig`, :class:`VerificationConfig`).
+        were built and are scored (:class:`estimator.edges.EdgeConfig`,
+        :class:`estimator.verification.VerificationConfig`).
     """
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))
