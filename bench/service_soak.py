@@ -8,10 +8,14 @@ demo recording (1280x720 JPEG of rendered bins, with their camera info and poses
 per camera. First the sustainable rate is measured: frames sent one at a time, each after the
 previous one was handled, for ``--calibrate`` frames; its inverse mean processing time is the
 rate the daemon keeps up with. Then ``--cameras`` cameras publish together at ``--overload``
-times that rate in total, and every ``--bomb-every`` seconds one camera sends a decompression
-bomb (PNG and JPEG in turn, 20000x20000 declared 1280x720). Printed at the end: the daemon's RSS
-min / max (sampled every second), frames sent, processed, dropped by reason, and the p50 / p95
-latency (arrival to estimate) of the frames processed.
+times that rate in total, and every ``--bomb-every`` seconds one camera sends a hostile image,
+the four kinds in turn: a PNG and a JPEG decompression bomb (20000x20000 declared 1280x720), a
+progressive JPEG whose one AC scan is repeated 20,000 times (4096x4096, every header true) and
+a PNG of 200,000 tiny chunks; at the same time a junk camera id that was never seen before
+sends one 8x8 frame and nothing else. Printed at the end: the daemon's RSS min / max (sampled
+every second), frames sent, processed, dropped by reason, whether every message sent is
+accounted for (processed or dropped with a reason), and the p50 / p95 latency (arrival to
+estimate) of the frames processed.
 """
 
 from __future__ import annotations
@@ -92,20 +96,29 @@ class Camera:
         self.session.put(f"{self.root}/image", _pack(image))
         self.sent += 1
 
-    def bomb(self, stream: bytes, encoding: str) -> None:
+    def bomb(self, stream: bytes, encoding: str, declared: tuple[int, int] | None) -> None:
         from posefuse.bench.bombs import image_message
 
         self.stamp += 1
-        payload = image_message(
-            stream, encoding, self.stamp, (self.views.width, self.views.height), self.cam_id
-        )
+        size = declared or (self.views.width, self.views.height)
+        payload = image_message(stream, encoding, self.stamp, size, self.cam_id)
         self.session.put(f"{self.root}/image", payload)
+
+
+def junk_camera(session, cell: str, cam_id: str) -> None:
+    """One valid 8x8 frame from a camera id never seen before, and nothing else from it."""
+    import cv2
+
+    from posefuse.bench.bombs import image_message
+
+    ok, png = cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))
+    session.put(f"{cell}/@v1/cam/{cam_id}/image", image_message(png.tobytes(), "png", 1, (8, 8)))
 
 
 def main(argv: list[str] | None = None) -> int:
     import zenoh
 
-    from posefuse.bench.bombs import jpeg_bomb, png_bomb
+    from posefuse.bench.bombs import jpeg_bomb, png_bomb, png_many_chunks, progressive_scan_bomb
     from posefuse.service.resources import DEFAULT_RECORDING
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -168,7 +181,12 @@ def main(argv: list[str] | None = None) -> int:
             before = _get(f"{base}/stats")
             # 2. the soak
             cams = [Camera(session, "soak", f"cam{c}", views, 7 * c) for c in range(args.cameras)]
-            bombs = [(png_bomb(), "png"), (jpeg_bomb(), "jpeg")]
+            bombs = [
+                (png_bomb(), "png", None),
+                (jpeg_bomb(), "jpeg", None),
+                (progressive_scan_bomb(), "jpeg", (4096, 4096)),
+                (png_many_chunks(), "png", (64, 64)),
+            ]
             rss: list[float] = []
             stop = threading.Event()
 
@@ -188,8 +206,9 @@ def main(argv: list[str] | None = None) -> int:
                 cams[k % len(cams)].frame(cam_period_ns)
                 k += 1
                 if now >= next_bomb:
-                    stream, encoding = bombs[n_bombs % 2]
-                    cams[n_bombs % len(cams)].bomb(stream, encoding)
+                    stream, encoding, declared = bombs[n_bombs % len(bombs)]
+                    cams[n_bombs % len(cams)].bomb(stream, encoding, declared)
+                    junk_camera(session, "soak", f"junk{n_bombs}")
                     n_bombs += 1
                     next_bomb += args.bomb_every
                 if now - last_report >= 60:
@@ -204,7 +223,14 @@ def main(argv: list[str] | None = None) -> int:
                 delay = start + k * period - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            time.sleep(3.0)  # let the queues drain
+            # let the queues drain: until nothing is pending and every image that arrived has
+            # been dealt with (at most a minute)
+            drain_end = time.monotonic() + 60
+            while time.monotonic() < drain_end:
+                s = _get(f"{base}/stats")
+                if not s["frames_pending"] and s["frames_handled"] >= s["frames_received"]:
+                    break
+                time.sleep(0.2)
             stop.set()
             sampler.join()
             after = _get(f"{base}/stats")
@@ -217,6 +243,10 @@ def main(argv: list[str] | None = None) -> int:
 
     dropped = Counter(after["frames_dropped"])
     dropped.subtract(before["frames_dropped"])
+    received = after["frames_received"] - before["frames_received"]
+    processed = after["frames_processed"] - before["frames_processed"]
+    handled = after["frames_handled"] - before["frames_handled"]
+    offered = k + 2 * n_bombs  # frames, hostile images and the junk cameras' frames
     figures = {
         "minutes": args.minutes,
         "cameras": args.cameras,
@@ -224,9 +254,14 @@ def main(argv: list[str] | None = None) -> int:
         "offered_fps": round(rate, 3),
         "frames_sent": k,
         "bombs_sent": n_bombs,
-        "frames_processed": after["frames_processed"] - before["frames_processed"],
+        "junk_cameras": n_bombs,
+        "images_offered": offered,
+        "images_received": received,
+        "frames_processed": processed,
         "processing_errors": after["processing_errors"] - before["processing_errors"],
         "dropped": {r: n for r, n in sorted(dropped.items()) if n},
+        "images_handled": handled,
+        "unaccounted": offered - handled,
         "latency_p50_ms": after["latency"]["p50_ms"],
         "latency_p95_ms": after["latency"]["p95_ms"],
         "rss_min_mb": round(min(rss), 1),

@@ -70,7 +70,7 @@ def main(argv=None) -> int:
             model = ds.catalog[track.obj_id]
             t = track.estimate.t_world_obj
 
-            def T_cam_obj(R, view):
+            def T_cam_obj(R, view, t=t):
                 T = np.eye(4)
                 T[:3, :3], T[:3, 3] = R, t
                 return np.linalg.inv(view.T_world_cam) @ T

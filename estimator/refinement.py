@@ -178,8 +178,8 @@ def refine_pose(
     cost, H, g, sets = objective(R, t)
     cost_start = cost
     lam = config.damping
-    it = 0
-    for it in range(1, config.iterations + 1):
+    it = 0  # the iterations run, reported in the result
+    for it in range(1, config.iterations + 1):  # noqa: B007 (read after the loop)
         A = H + lam * np.diag(np.diag(H))
         delta = -np.linalg.solve(A, g)
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]

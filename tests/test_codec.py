@@ -224,9 +224,8 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
     import zlib
 
     import cv2
-    from hostile import png_many_chunks, progressive_scan_bomb
 
-    from posefuse.bench.bombs import image_message
+    from posefuse.bench.bombs import image_message, png_many_chunks, progressive_scan_bomb
     from posefuse.service.codec import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
 
     def refused(stream, encoding, size):

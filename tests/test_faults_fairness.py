@@ -10,10 +10,9 @@ import time
 import cv2
 import numpy as np
 import pytest
-from hostile import progressive_scan_bomb
 from loopback import SECOND, FakeCamera, ServeProcess, wait_until, zenoh_peer
 
-from posefuse.bench.bombs import image_message
+from posefuse.bench.bombs import image_message, progressive_scan_bomb
 from posefuse.service.codec import encode_camera_pose
 
 CELL = "fair"
