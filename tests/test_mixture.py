@@ -9,8 +9,10 @@ from posefuse.estimator.geometry import rotation_angle, so3_exp
 from posefuse.estimator.mixture import (
     MixtureConfig,
     RotationMixture,
+    _axis_angle_optimum,
     closest_equivalent,
     closest_equivalents,
+    discrete_selection,
 )
 from posefuse.estimator.objects import make_model
 
@@ -192,3 +194,151 @@ def test_kept_equivalent_choices_match_a_full_search(models, seed):
     for a, b in zip(fast.components, slow.components, strict=True):
         np.testing.assert_allclose(a.R_world_obj, b.R_world_obj, atol=1e-9)
         np.testing.assert_allclose(a.cov, b.cov, rtol=1e-6, atol=1e-12)
+
+
+# --- the pieces one at a time, against brute force and written-out values -------------------
+
+
+def _rot_about(axis, theta):
+    return so3_exp(np.asarray(axis, float) * theta)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_axis_angle_optimum_maximises_the_trace_about_any_axis(seed):
+    """The closed form against a 0.05 degree grid, about an axis that is no coordinate axis, for
+    one matrix and for a batch (the form closest_equivalents calls it with)."""
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    grid = np.deg2rad(np.arange(-180.0, 180.0, 0.05))
+    turns = so3_exp(grid[:, None] * axis)  # (G, 3, 3)
+    M = rng.normal(size=(2, 3, 3, 3))
+    theta = _axis_angle_optimum(M, axis)
+    assert theta.shape == (2, 3)
+    for idx in np.ndindex(2, 3):
+        traces = np.trace(M[idx] @ turns, axis1=1, axis2=2)
+        best = float(np.trace(M[idx] @ _rot_about(axis, theta[idx])))
+        assert best >= traces.max() - 1e-9
+        assert best == pytest.approx(traces.max(), abs=1e-5 * np.abs(M[idx]).sum())
+        assert float(_axis_angle_optimum(M[idx], axis)) == pytest.approx(theta[idx], abs=1e-12)
+
+
+def test_closest_equivalent_about_a_tilted_continuous_axis():
+    """A part symmetric about a tilted axis: the measurement turned about that axis is undone
+    exactly, and the angle is the brute force's over the axis."""
+    axis = np.array([1.0, 2.0, 2.0]) / 3.0
+    R_ref = _random(21)
+    for deg in (-150.0, -20.0, 35.0, 170.0):
+        noise = _rot([0.3, -1.0, 0.2], 3.0)
+        R_meas = noise @ R_ref @ _rot_about(axis, np.deg2rad(deg))
+        R_eq, angle = closest_equivalent(R_meas, R_ref, np.eye(3)[None], axis[None])
+        grid = np.deg2rad(np.arange(-180.0, 180.0, 0.05))
+        brute = rotation_angle(
+            np.einsum("ji,gjk->gik", R_ref, R_meas @ so3_exp(grid[:, None] * axis))
+        )
+        assert brute.min() - np.deg2rad(0.025) <= angle <= brute.min() + 1e-12  # grid: 0.05 deg
+        # the equivalent is the measurement turned about the axis (its points on the axis stay)
+        np.testing.assert_allclose(R_eq @ axis, R_meas @ axis, atol=1e-12)
+        assert angle <= 3.0 * DEG + 1e-9
+
+
+def test_discrete_selection_index_and_margin_against_a_sorted_search(models):
+    """The index of the closest equivalent and the gap to the runner-up, against sorting all
+    of the gear's equivalents; with the identity alone the margin is infinite."""
+    gear = models["gear"]
+    S = RotationMixture.for_model(gear).discrete
+    assert len(S) > 3
+    R_ref = _random(30)
+    R_meas = np.stack(
+        [so3_exp(np.random.default_rng(k).normal(0, 0.5, 3)) @ R_ref for k in range(8)]
+    )
+    k, margin = discrete_selection(R_meas, R_ref, S)
+    for m in range(len(R_meas)):
+        angles = rotation_angle(np.einsum("ji,djk->dik", R_ref, R_meas[m] @ S))
+        order = np.sort(angles)
+        assert k[m] == int(np.argmin(angles))
+        assert margin[m] == pytest.approx(order[1] - order[0], abs=1e-12)
+        assert margin[m] > 0
+    k1, margin1 = discrete_selection(R_meas, R_ref, np.eye(3)[None])
+    np.testing.assert_array_equal(k1, 0)
+    assert margin1.dtype == float and np.all(np.isinf(margin1))
+
+
+def test_a_mixture_refuses_symmetries_without_the_identity_first_and_keeps_its_config(models):
+    flips = np.stack([np.diag([1.0, -1.0, -1.0]), np.eye(3)])
+    with pytest.raises(
+        ValueError, match=r"^RotationMixture: the first discrete symmetry must be the identity$"
+    ):
+        RotationMixture(flips)
+    mix = RotationMixture()
+    assert mix.continuous_axes.shape == (0, 3) and mix.discrete.shape == (1, 3, 3)
+    config = MixtureConfig(gate_deg=12.0, sigma_deg=4.0)
+    assert RotationMixture.for_model(models["gear"], config).config is config
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.5, float("inf"), float("nan")])
+def test_a_confidence_must_be_finite_and_positive(bad):
+    mix = RotationMixture()
+    mix.add(np.eye(3), 0.5)
+    with pytest.raises(ValueError, match="confidence must be > 0"):
+        mix.add(np.eye(3), bad)
+    assert len(mix.components) == 1 and mix.components[0].n == 1  # state untouched
+
+
+def test_covariance_is_sigma_squared_over_the_summed_confidence():
+    """Members that agree exactly: J = I at r = 0, so the covariance is sigma^2 / sum(c) per
+    axis (a measurement of confidence 1 counts as one of standard deviation sigma)."""
+    sigma = 7.0
+    mix = RotationMixture(config=MixtureConfig(sigma_deg=sigma))
+    R = _random(40)
+    conf = [0.9, 0.4, 0.7]
+    for c in conf:
+        mix.add(R, c)
+    expected = np.deg2rad(sigma) ** 2 / sum(conf)
+    np.testing.assert_allclose(
+        mix.best().cov, expected * np.eye(3), rtol=1e-6, atol=1e-12 * expected
+    )
+    np.testing.assert_allclose(mix.best().R_world_obj, R, atol=1e-12)
+
+
+def test_old_members_retire_from_the_window_but_keep_their_confidence():
+    config = MixtureConfig(max_members=5)
+    mix = RotationMixture(config=config)
+    R = _random(50)
+    rng = np.random.default_rng(5)
+    conf = rng.uniform(0.2, 1.0, 8)
+    for k, c in enumerate(conf):
+        mix.add(_rot(rng.normal(size=3), 2.0) @ R, float(c))
+        comp = mix.components[0]
+        assert len(comp.members) == min(k + 1, 5)
+    comp = mix.components[0]
+    assert comp.retired == 3 and comp.n == 8
+    assert comp.retired_confidence == pytest.approx(conf[:3].sum(), rel=1e-12)
+    assert comp.confidence == pytest.approx(conf.sum(), rel=1e-12)
+    kept = np.array([c for _, c in comp.members])
+    np.testing.assert_allclose(kept, conf[3:], rtol=1e-12)  # the newest five, in order
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_kept_choices_match_a_full_search_while_the_mean_turns_about_the_axis(models, seed):
+    """Members spread over a whole period of the gear's turn, while the truth itself turns about
+    that axis a little each step: the mean keeps moving, members' closest equivalents switch,
+    and the kept choices must follow exactly as a full search does."""
+    gear = models["gear"]
+    config = MixtureConfig(max_members=15)
+    fast = RotationMixture.for_model(gear, config)
+    slow = _FullSearchMixture.for_model(gear, config)
+    # the smallest turn about z among the symmetries: the gear's period
+    about_z = [S for S in fast.discrete[1:] if abs(S[2, 2] - 1) < 1e-9]
+    period = min(rotation_angle(np.array(about_z)))
+    rng = np.random.default_rng(seed)
+    R0 = _random(60 + seed)
+    for step in range(45):
+        drift = _rot_about([0, 0, 1], np.deg2rad(1.5) * step)
+        spin = _rot_about([0, 0, 1], rng.uniform(-0.5, 0.5) * period)
+        R = so3_exp(rng.normal(0, 2 * DEG, 3)) @ R0 @ drift @ spin
+        c = float(rng.uniform(0.3, 1.0))
+        assert fast.add(R, c) == slow.add(R, c)
+    assert len(fast.components) == len(slow.components)
+    for a, b in zip(fast.components, slow.components, strict=True):
+        np.testing.assert_allclose(a.R_world_obj, b.R_world_obj, atol=1e-9)
