@@ -83,9 +83,9 @@ def cached_scores(
     cache is updated and keeps only the views given."""
     H, V = len(R_world_obj), len(views)
     out = np.empty((H, V))
+    todo = np.ones((H, V), bool)
     tol = np.deg2rad(cache.rotation_tol_deg)
     for v, view in enumerate(views):
-        todo = np.ones(H, bool)
         entry = cache.entries.get(view.stamp_ns)
         if entry is not None and np.linalg.norm(entry[0] - t_world_obj) <= (
             cache.translation_frac * edges.diameter
@@ -96,12 +96,18 @@ def cached_scores(
             k = np.argmin(angle, axis=1)
             hit = angle[np.arange(H), k] < tol
             out[hit, v] = entry[2][k[hit]]
-            todo = ~hit
-        if todo.any():
-            out[todo, v] = score_hypotheses(edges, [view], R_world_obj[todo], t_world_obj, config)[
-                :, 0
-            ]
-        if entry is None or todo.any():
+            todo[:, v] = ~hit
+    # what is left, scored in one batch: the hypotheses any view needs, in the views that need
+    # any (a hypothesis' cost in a view depends on nothing else, so the superset is exact)
+    rows, cols = np.flatnonzero(todo.any(axis=1)), np.flatnonzero(todo.any(axis=0))
+    if len(rows):
+        scored = score_hypotheses(
+            edges, [views[v] for v in cols], R_world_obj[rows], t_world_obj, config
+        )
+        r, c = np.nonzero(todo[np.ix_(rows, cols)])
+        out[rows[r], cols[c]] = scored[r, c]
+    for v, view in enumerate(views):
+        if view.stamp_ns not in cache.entries or todo[:, v].any():
             cache.entries[view.stamp_ns] = (
                 np.array(t_world_obj, float),
                 R_world_obj.copy(),

@@ -17,7 +17,9 @@ from posefuse.estimator.nbv import look_at
 from posefuse.estimator.refinement import RefineConfig, refine_pose
 from posefuse.estimator.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Renderer
 from posefuse.estimator.verification import (
+    ScoreCache,
     VerificationConfig,
+    cached_scores,
     near_symmetries,
     score_hypotheses,
     verify,
@@ -238,3 +240,44 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
         track = estimator.tracks[e.object_id]
         if track.mixture is not None and track.mixture.components:
             assert np.allclose(e.T_world_obj[:3, :3], track.mixture.best().R_world_obj)
+
+
+def test_the_score_cache_gives_what_scoring_everything_gives(robi_catalog):
+    """cached_scores against score_hypotheses without a cache: a hypothesis within the cache's
+    1 degree reads its view's cost back, one further away and every hypothesis after the
+    translation moved are scored anew, and views no longer given leave the cache."""
+    model, T_world_obj, views = _tube(robi_catalog)
+    edges = _edges(model)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    first = np.array([R, R @ so3_exp(np.array([0.0, 0.4, 0.0]))])
+    views = [_restamp(v, stamp) for v, stamp in zip(views, (1, 3, 7), strict=True)]
+    cache = ScoreCache()
+    full = score_hypotheses(edges, views, first, t, CONFIG)
+    np.testing.assert_array_equal(cached_scores(edges, views, first, t, CONFIG, cache), full)
+    assert set(cache.entries) == {1, 3, 7}
+    # the first hypothesis turned by 0.5 degree (read back from the cache), the second by 5
+    # degrees (scored anew)
+    turned = np.array(
+        [
+            first[0] @ so3_exp(np.array([np.deg2rad(0.5), 0, 0])),
+            first[1] @ so3_exp(np.array([0, 0, np.deg2rad(5.0)])),
+        ]
+    )
+    got = cached_scores(edges, views, turned, t, CONFIG, cache)
+    want = score_hypotheses(edges, views, turned, t, CONFIG)
+    np.testing.assert_array_equal(got[1], want[1])
+    then = score_hypotheses(edges, views, first, t, CONFIG)
+    np.testing.assert_array_equal(got[0], then[0])  # read back, not rescored
+    assert np.abs(want[0] - then[0]).max() > 0  # (so the read-back is visible)
+    # the translation moves by 2% of the diameter: everything is scored anew
+    moved = t + np.array([0.02 * model.diameter, 0, 0])
+    got = cached_scores(edges, views, turned, moved, CONFIG, cache)
+    np.testing.assert_array_equal(got, score_hypotheses(edges, views, turned, moved, CONFIG))
+    cached_scores(edges, views[1:], turned, moved, CONFIG, cache)
+    assert set(cache.entries) == {3, 7}
+
+
+def _restamp(view, stamp_ns):
+    from dataclasses import replace
+
+    return replace(view, stamp_ns=stamp_ns)
