@@ -514,9 +514,9 @@ def project(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """
     pts_cam = _as_array(pts_cam, (3,), "project: pts_cam")
     K = _check_K(K, "project")
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # z = 0 gives inf / nan, quietly
         xy = pts_cam[..., :2] / pts_cam[..., 2:3]
-    return xy @ K[:2, :2].T + K[:2, 2]
+        return xy @ K[:2, :2].T + K[:2, 2]
 
 
 def project_jacobian(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:

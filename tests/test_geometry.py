@@ -452,38 +452,92 @@ def test_transform_points_shapes():
 
 # --------------------------------------------------------------------------- validation
 @pytest.mark.parametrize(
-    ("fn", "args"),
+    ("fn", "args", "names"),
     [
-        (g.hat, (np.zeros(4),)),
-        (g.hat, (np.zeros((3, 2)),)),
-        (g.vee, (np.zeros(3),)),
-        (g.vee, (np.zeros((3, 4)),)),
-        (g.so3_exp, (np.zeros((5, 2)),)),
-        (g.so3_log, (np.zeros((4, 4)),)),
-        (g.so3_log, (np.zeros(9),)),
-        (g.so3_left_jacobian, (np.zeros(6),)),
-        (g.so3_right_jacobian, (np.zeros(2),)),
-        (g.so3_left_jacobian_inv, (np.zeros((2, 4)),)),
-        (g.so3_right_jacobian_inv, (1.0,)),
-        (g.se3_exp, (np.zeros(3),)),
-        (g.se3_log, (np.eye(3),)),
-        (g.make_transform, (np.eye(4), np.zeros(3))),
-        (g.make_transform, (np.eye(3), np.zeros(4))),
-        (g.make_transform, (np.zeros((2, 3, 3)), np.zeros((3, 3)))),
-        (g.compose, (np.eye(4), np.eye(3))),
-        (g.invert, (np.eye(3),)),
-        (g.transform_points, (np.eye(4), np.zeros((5, 4)))),
-        (g.transform_points, (np.eye(3), np.zeros((5, 3)))),
-        (g.project, (np.zeros((5, 2)), K)),
-        (g.project, (np.ones(3), K[:2])),
-        (g.project, (np.ones(3), np.eye(3) * 2)),
-        (g.project_jacobian, (np.ones(4), K)),
-        (g.project_jacobian, (np.ones(3), K.ravel())),
-        (g.in_front, (np.ones(2),)),
-        (g.rotation_angle, (np.eye(4),)),
-        (g.is_rotation, (np.zeros(3),)),
+        (g.hat, (np.zeros(4),), "hat"),
+        (g.hat, (np.zeros((3, 2)),), "hat"),
+        (g.vee, (np.zeros(3),), "vee"),
+        (g.vee, (np.zeros((3, 4)),), "vee"),
+        (g.so3_exp, (np.zeros((5, 2)),), "so3_exp"),
+        (g.so3_log, (np.zeros((4, 4)),), "so3_log: R"),
+        (g.so3_log, (np.zeros(9),), "so3_log: R"),
+        (g.so3_left_jacobian, (np.zeros(6),), "so3_left_jacobian: w"),
+        (g.so3_right_jacobian, (np.zeros(2),), "so3_right_jacobian: w"),
+        (g.so3_left_jacobian_inv, (np.zeros((2, 4)),), "so3_left_jacobian_inv: w"),
+        (g.so3_right_jacobian_inv, (1.0,), "so3_right_jacobian_inv: w"),
+        (g.se3_exp, (np.zeros(3),), "se3_exp"),
+        (g.se3_log, (np.eye(3),), "se3_log"),
+        (g.make_transform, (np.eye(4), np.zeros(3)), "make_transform: R"),
+        (g.make_transform, (np.eye(3), np.zeros(4)), "make_transform: t"),
+        (g.make_transform, (np.zeros((2, 3, 3)), np.zeros((3, 3))), "make_transform: batch"),
+        (g.compose, (np.eye(3), np.eye(4)), "compose: T_a_b"),
+        (g.compose, (np.eye(4), np.eye(3)), "compose: T_b_c"),
+        (g.invert, (np.eye(3),), "invert: T_a_b"),
+        (g.transform_points, (np.eye(4), np.zeros((5, 4))), "transform_points: pts_b"),
+        (g.transform_points, (np.eye(3), np.zeros((5, 3))), "transform_points: T_a_b"),
+        (g.project, (np.zeros((5, 2)), K), "project: pts_cam"),
+        (g.project, (np.ones(3), K[:2]), "project: K"),
+        (g.project, (np.ones(3), np.eye(3) * 2), "project: the last row of K"),
+        (g.project_jacobian, (np.ones(4), K), "project_jacobian: pts_cam"),
+        (g.project_jacobian, (np.ones(3), K.ravel()), "project_jacobian: K"),
+        (g.in_front, (np.ones(2),), "in_front: pts_cam"),
+        (g.rotation_angle, (np.eye(4),), "rotation_angle: R"),
+        (g.is_rotation, (np.zeros(3),), "is_rotation"),
     ],
 )
-def test_bad_shapes_raise_value_error(fn, args):
-    with pytest.raises(ValueError):
+def test_bad_shapes_raise_value_error(fn, args, names):
+    """Refused with one message that starts with the function and the argument it names, so a
+    user's mistake points at what to fix (case and spelling as in the signature)."""
+    with pytest.raises(ValueError) as info:
         fn(*args)
+    assert str(info.value).startswith(names), str(info.value)
+
+
+def test_random_rotations_refuses_what_is_not_a_count_or_a_seed():
+    with pytest.raises(ValueError, match=r"^random_rotations: an explicit seed is required$"):
+        g.random_rotations(2, None)
+    for n in (-1, 2.5, True, "3"):
+        with pytest.raises(ValueError) as info:
+            g.random_rotations(n, 0)
+        assert str(info.value) == f"random_rotations: n must be a non-negative int, got {n!r}"
+
+
+def test_in_front_and_is_rotation_at_their_bounds():
+    """A point exactly at min_z is not in front (strictly beyond); an exact rotation is one at
+    atol = 0 (the bounds are inclusive there)."""
+    pts = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5 + 1e-12], [0.0, 0.0, np.nan]])
+    np.testing.assert_array_equal(g.in_front(pts, min_z=0.5), [False, True, False])
+    assert g.is_rotation(np.eye(3), atol=0.0)
+    assert g.is_rotation(np.diag([1.0, -1.0, -1.0]), atol=0.0)
+
+
+def test_project_of_a_point_at_depth_zero_warns_nothing():
+    """Points at z = 0 project to inf / nan without a floating-point warning (callers mask them
+    with in_front)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        uv = g.project(np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]), K)
+    assert not np.isfinite(uv).all()
+
+
+@pytest.mark.parametrize("deg", [121.0, 135.0, 150.0, 170.0, 179.0])
+@pytest.mark.parametrize("axis", [[1.0, 1.0, 1.0], [1.0, -2.0, 0.5], [-0.3, 0.2, -1.0]])
+def test_log_between_two_thirds_of_pi_and_pi_with_oblique_axes(deg, axis):
+    """The near-pi branch (cos t < -1/2) on axes that are no coordinate axis: there the largest
+    column of the symmetric part is shorter than 1 and must be normalised."""
+    a = np.asarray(axis) / np.linalg.norm(axis)
+    w = a * np.deg2rad(deg)
+    np.testing.assert_allclose(g.so3_log(g.so3_exp(w)), w, atol=1e-12)
+
+
+@pytest.mark.parametrize("axis", [[1.0, 1.0, 1.0], [0.2, -1.0, 0.4], [-1.0, 0.5, -0.5]])
+def test_log_exactly_pi_makes_the_largest_component_positive(axis):
+    a = np.asarray(axis) / np.linalg.norm(axis)
+    R = 2.0 * np.outer(a, a) - np.eye(3)  # exactly pi about a
+    w = g.so3_log(R)
+    assert np.linalg.norm(w) == pytest.approx(np.pi, abs=1e-12)
+    k = int(np.argmax(np.abs(w)))
+    assert w[k] > 0
+    np.testing.assert_allclose(np.abs(w), np.abs(a) * np.pi, atol=1e-7)
