@@ -163,7 +163,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
 
     from posefuse.clients.camera import publish, scene_messages
     from posefuse.estimator.dataset import load_dataset
-    from posefuse.service.settings import zenoh_config
+    from posefuse.service.settings import wait_for_subscribers, zenoh_config
 
     settings = _settings(args)
     if args.rate <= 0:
@@ -183,15 +183,11 @@ def _cmd_publish(args: argparse.Namespace) -> int:
         )
     )
     with zenoh.open(zenoh_config(settings)) as session:
-        # wait (at most --warmup s) until a subscriber of the images is connected: frames put
+        # wait (at most --warmup s) until every key has its subscriber: messages put
         # before that would be lost
-        probe = session.declare_publisher(f"{settings.cell}/@v1/cam/{args.camera}/image")
-        deadline = time.monotonic() + args.warmup
-        while not probe.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(0.05)
-        if not probe.matching_status.matching:
-            print(f"no subscriber of {probe.key_expr} after {args.warmup:g} s: publishing anyway")
-        probe.undeclare()
+        missing = wait_for_subscribers(session, [key for _, key, _ in messages], args.warmup)
+        if missing:
+            print(f"no subscriber of {missing[0]} after {args.warmup:g} s: publishing anyway")
         with tqdm(total=len(messages), desc="publish", unit="msg") as bar:
             n = publish(session, messages, realtime=True, progress=lambda _k: bar.update(1))
         time.sleep(0.5)

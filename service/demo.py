@@ -92,7 +92,7 @@ def run_demo(
     from posefuse.service.codec import decode_reset, estimate_to_dict
     from posefuse.service.daemon import Daemon
     from posefuse.service.recording import read_messages
-    from posefuse.service.settings import zenoh_config
+    from posefuse.service.settings import wait_for_subscribers, zenoh_config
     from posefuse.service.worker import EstimatorWorker, make_detector
 
     catalog = load_catalog(settings.catalog)
@@ -146,7 +146,12 @@ def run_demo(
         flush=True,
     )
     with zenoh.open(client_conf) as session:
-        time.sleep(0.5)
+        # every key the replay puts has its subscriber before the first put (a loaded machine
+        # may take seconds to bring the link up; a message put before it is lost)
+        replayed = [m.key for m in messages if m.key != keys.reset and "/groundtruth/" not in m.key]
+        missing = wait_for_subscribers(session, replayed, timeout_s=60)
+        if missing:
+            raise TimeoutError(f"no subscriber of {missing[0]} after 60 s")
         bar = tqdm(total=n_images, desc="replay", unit="frame", disable=not show_progress)
         for m in messages:
             if m.key == keys.reset:

@@ -199,3 +199,24 @@ def zenoh_config(settings: Settings):
     if "connect" in given and settings.connect:
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
     return conf
+
+
+def wait_for_subscribers(session, keys, timeout_s: float) -> list[str]:
+    """Wait until every key in ``keys`` has a matching subscriber (the link is up and the
+    subscriptions are known), at most ``timeout_s`` seconds. Messages put before that are
+    lost, so a publisher that must not lose its first frames calls this first.
+
+    Returns the keys still without a subscriber (empty when all matched)."""
+    import time
+
+    publishers = {key: session.declare_publisher(key) for key in dict.fromkeys(keys)}
+    deadline = time.monotonic() + timeout_s
+    try:
+        while True:
+            missing = [k for k, p in publishers.items() if not p.matching_status.matching]
+            if not missing or time.monotonic() >= deadline:
+                return missing
+            time.sleep(0.02)
+    finally:
+        for p in publishers.values():
+            p.undeclare()
