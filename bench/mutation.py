@@ -154,7 +154,10 @@ def _diffs(workdir: Path, name: str, mutants: list[str]) -> dict[str, str]:
     path = f"posefuse/estimator/{name}.py"
     out = subprocess.run(
         [sys.executable, "-c", _DIFFS, json.dumps(mutants), path],
-        cwd=workdir, capture_output=True, text=True, check=True,
+        cwd=workdir,
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout
     return json.loads(out)
 
@@ -183,19 +186,28 @@ def function_of(mutant: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m posefuse.bench.mutation", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m posefuse.bench.mutation",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument(
         "module", help="geometry, estimator/geometry.py or posefuse.estimator.geometry"
     )
     parser.add_argument("--tests", nargs="+", help="test files (default: the module's own)")
     parser.add_argument("--workdir", type=Path, help="scratch copy (default under $TMPDIR)")
     parser.add_argument("--max-children", type=int, default=1, help="parallel mutant runs")
-    parser.add_argument("--report-only", action="store_true",
-                        help="print the score of the last run in WORKDIR without running")
-    parser.add_argument("--rerun-survivors", action="store_true",
-                        help="copy the checkout's tests into WORKDIR again and re-run only the "
-                        "mutants that were not killed last time (after adding tests)")
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="print the score of the last run in WORKDIR without running",
+    )
+    parser.add_argument(
+        "--rerun-survivors",
+        action="store_true",
+        help="copy the checkout's tests into WORKDIR again and re-run only the "
+        "mutants that were not killed last time (after adding tests)",
+    )
     parser.add_argument("--json", type=Path, help="also write the result here")
     args = parser.parse_args(argv)
 
@@ -220,12 +232,14 @@ def main(argv: list[str] | None = None) -> int:
         again = sorted(m for m, s in last.items() if s not in KILLED)
         for dest in (workdir / "tests", workdir / "mutants" / "tests"):
             shutil.rmtree(dest)
-            shutil.copytree(REPO / "tests", dest, ignore=shutil.ignore_patterns(
-                "node_modules", "__pycache__"))
+            shutil.copytree(
+                REPO / "tests", dest, ignore=shutil.ignore_patterns("node_modules", "__pycache__")
+            )
         print(f"re-running {len(again)} mutants of estimator/{name}.py", flush=True)
         if again:
-            proc = _mutmut(workdir, "run", "--max-children", str(args.max_children), *again,
-                           capture=False)
+            proc = _mutmut(
+                workdir, "run", "--max-children", str(args.max_children), *again, capture=False
+            )
             if proc.returncode not in (0, 1):
                 print(f"mutmut run exited {proc.returncode}", file=sys.stderr)
                 return 2
@@ -255,20 +269,31 @@ def main(argv: list[str] | None = None) -> int:
     score = len(killed) / live if live else 1.0
     minutes = (time.perf_counter() - t0) / 60
     print(f"\nestimator/{name}.py against {' '.join(tests)}")
-    print(f"mutants {total}: killed {len(killed)}, survived {len(survived)}, "
-          f"equivalent {len(equiv)}; score {100 * score:.1f}% of non-equivalent "
-          f"({minutes:.1f} min)")
+    print(
+        f"mutants {total}: killed {len(killed)}, survived {len(survived)}, "
+        f"equivalent {len(equiv)}; score {100 * score:.1f}% of non-equivalent "
+        f"({minutes:.1f} min)"
+    )
     for m, why in equiv:
         print(f"  equivalent {m}: {why}")
     for m, status, d in survived:
         print(f"\n  {status} {m}\n" + "\n".join("    " + line for line in d.splitlines()))
     if args.json:
-        args.json.write_text(json.dumps({
-            "module": f"estimator/{name}.py", "tests": tests, "total": total,
-            "killed": len(killed), "equivalent": [m for m, _ in equiv],
-            "survived": [{"mutant": m, "status": s, "diff": d} for m, s, d in survived],
-            "score": score,
-        }, indent=1) + "\n")
+        args.json.write_text(
+            json.dumps(
+                {
+                    "module": f"estimator/{name}.py",
+                    "tests": tests,
+                    "total": total,
+                    "killed": len(killed),
+                    "equivalent": [m for m, _ in equiv],
+                    "survived": [{"mutant": m, "status": s, "diff": d} for m, s, d in survived],
+                    "score": score,
+                },
+                indent=1,
+            )
+            + "\n"
+        )
     return 1 if survived else 0
 
 

@@ -94,8 +94,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--data-dir",
         default=None,
-        help="where rendered training sets are kept and reused "
-        "(default: ~/.cache/posefuse/train)",
+        help="where rendered training sets are kept and reused (default: ~/.cache/posefuse/train)",
     )
     p.add_argument(
         "--checkpoint",

@@ -19,6 +19,7 @@ import numpy as np
 
 from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
 from posefuse.service.keys import Keys
+from posefuse.service.settings import put_camera_message
 from posefuse.service.sync import interpolate_pose
 
 
@@ -124,7 +125,7 @@ def publish(
                     time.sleep(delay)
             if server is not None and key.endswith("/info"):
                 server.publish(key, payload)
-            session.put(key, payload)
+            put_camera_message(session, key, payload)
             n += 1
             if progress:
                 progress(key)

@@ -92,7 +92,7 @@ def run_demo(
     from posefuse.service.codec import decode_reset, estimate_to_dict
     from posefuse.service.daemon import Daemon
     from posefuse.service.recording import read_messages
-    from posefuse.service.settings import wait_for_subscribers, zenoh_config
+    from posefuse.service.settings import put_camera_message, wait_for_subscribers, zenoh_config
     from posefuse.service.worker import EstimatorWorker, make_detector
 
     catalog = load_catalog(settings.catalog)
@@ -166,7 +166,7 @@ def run_demo(
                 scene = int(m.key.rsplit("/", 1)[1])
                 truth[scene] = decode_groundtruth(m.payload)
                 continue
-            session.put(m.key, m.payload)
+            put_camera_message(session, m.key, m.payload)
             sent[m.key] = sent.get(m.key, 0) + 1
             if m.key.endswith("/image"):
                 bar.update(1)

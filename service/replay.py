@@ -18,6 +18,7 @@ from posefuse.service.codec import (
 )
 from posefuse.service.keys import Keys
 from posefuse.service.recording import Recorder
+from posefuse.service.settings import put_camera_message
 from posefuse.service.sync import FrameSynchronizer
 from posefuse.service.worker import EstimatorWorker
 
@@ -140,7 +141,7 @@ def replay_live(
             continue
         if keys.parse_camera(key) is None:
             continue  # ground truth and outputs are not replayed
-        session.put(key, payload)
+        put_camera_message(session, key, payload)
         sent += 1
         if key.endswith("/image"):
             images += 1

@@ -220,3 +220,17 @@ def wait_for_subscribers(session, keys, timeout_s: float) -> list[str]:
     finally:
         for p in publishers.values():
             p.undeclare()
+
+
+def put_camera_message(session, key: str, payload: bytes, **options) -> None:
+    """Put one camera message (info, pose or image) so that a busy link delays it instead
+    of losing it.
+
+    Zenoh's default for data is to drop a message whose link queue stays full for a
+    millisecond: a 200 kB image, fragmented over several batches, was lost that way whenever
+    the receiving daemon was slow to read (a loaded machine), while the small poses around it
+    got through. A camera's messages wait instead; what the daemon cannot keep up with is
+    dropped by its own per-camera queues, where it is counted."""
+    import zenoh
+
+    session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **options)

@@ -22,6 +22,8 @@ from posefuse.estimator.objects import Catalog, ObjectModel
 from posefuse.estimator.render import MATTE, Lighting, Material, random_lighting
 
 REALSENSE_1280x720 = Camera(np.array([[924.0, 0, 644.0], [0, 924.0, 361.0], [0, 0, 1]]), 1280, 720)
+
+
 def camera_of_size(width: int, height: int) -> Camera:
     """A sensor of ``width`` x ``height`` pixels with the 1280x720 RealSense's horizontal field
     of view (focal length scaled by the width), square pixels, principal point at the image

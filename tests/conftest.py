@@ -1,6 +1,8 @@
 """Shared fixtures: a small rendered BOP dataset of the committed catalog, template banks."""
 
+import atexit
 import os
+import shutil
 import tempfile
 
 import numpy as np
@@ -14,6 +16,7 @@ from posefuse.sim.synth import SynthConfig, generate_dataset
 
 # one template cache for the whole test session, never the user's
 os.environ["POSEFUSE_CACHE"] = tempfile.mkdtemp(prefix="posefuse-test-cache-")
+atexit.register(shutil.rmtree, os.environ["POSEFUSE_CACHE"], ignore_errors=True)
 
 SMALL_CAMERA = Camera(np.array([[462.0, 0, 320.0], [0, 462.0, 180.0], [0, 0, 1]]), 640, 360)
 

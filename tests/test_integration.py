@@ -224,3 +224,31 @@ def test_daemon_and_camera_over_loopback(full_res_dataset, default_banks, tmp_pa
             daemon.wait(timeout=20)
         except subprocess.TimeoutExpired:
             daemon.kill()
+
+
+class _PutRecorder:
+    """A session that records each put's key and options."""
+
+    def __init__(self):
+        self.puts = []
+
+    def put(self, key, payload, **options):
+        self.puts.append((key, options))
+
+
+def test_camera_and_replay_puts_wait_on_a_busy_link_instead_of_dropping():
+    """Zenoh drops a put whose link queue stays full for a millisecond unless told to block:
+    a large image was lost that way on a loaded machine while the poses around it arrived."""
+    import zenoh
+
+    from posefuse.clients.camera import publish
+    from posefuse.service.replay import replay_live
+
+    keys = ["c/@v1/cam/cam0/info", "c/@v1/cam/cam0/pose", "c/@v1/cam/cam0/image"]
+    camera = _PutRecorder()
+    publish(camera, [(0.0, k, b"x") for k in keys], realtime=False, serve_info=False)
+    replay = _PutRecorder()
+    replay_live([(i, k, b"x") for i, k in enumerate(keys)], replay, cell="c", rate=0)
+    block = {"congestion_control": zenoh.CongestionControl.BLOCK}
+    assert camera.puts == [(k, block) for k in keys]
+    assert replay.puts == [(k, block) for k in keys]

@@ -19,7 +19,7 @@ from posefuse.cli.main import main
 
 # training steps of the onboarding tests: a fixed amount of work, so the result does not depend
 # on the machine's speed; few, since onboarding fine-tunes from the shipped checkpoint
-STEPS = 300
+STEPS = 60
 # a part the shipped model never saw (the real bracket) needs more of them than the zigzag
 NEW_PART_STEPS = 900
 TRAIN_SCENES = 8

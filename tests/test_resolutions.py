@@ -52,9 +52,7 @@ def test_a_camera_of_another_resolution_gives_estimates(camera_dataset):
         assert stats["frames_processed"] == n and stats["processing_errors"] == 0, stats
         objects = daemon.objects()
         # estimates of the bin's parts, where parts truly are (translation within 0.1 d)
-        truth = [
-            (g.obj_id, (view.T_world_cam @ g.T_cam_obj)[:3, 3]) for g in view.gts
-        ]
+        truth = [(g.obj_id, (view.T_world_cam @ g.T_cam_obj)[:3, 3]) for g in view.gts]
         near = 0
         for o in objects:
             d = dataset.catalog[o["class_id"]].diameter
@@ -86,15 +84,18 @@ def test_a_frame_too_small_for_the_front_end_is_refused_and_counted():
                 cam.frame(SECOND + k * SECOND // 10)
                 k += 1
                 wait_until(
-                    lambda k=k: daemon.stats()["cameras"].get("cam_tiny", {}).get("images", 0)
-                    >= min(k, 1),
+                    lambda k=k: (
+                        daemon.stats()["cameras"].get("cam_tiny", {}).get("images", 0) >= min(k, 1)
+                    ),
                     30,
                     what="the tiny camera's images arriving",
                     context=daemon.stats,
                 )
             wait_until(
-                lambda: daemon.stats()["frames_handled"]
-                >= daemon.stats()["cameras"]["cam_tiny"]["images"],
+                lambda: (
+                    daemon.stats()["frames_handled"]
+                    >= daemon.stats()["cameras"]["cam_tiny"]["images"]
+                ),
                 60,
                 what="every tiny frame handled",
                 context=daemon.stats,
@@ -102,8 +103,9 @@ def test_a_frame_too_small_for_the_front_end_is_refused_and_counted():
         stats = daemon.stats()
         assert stats["processing_errors"] == 0 and stats["frames_processed"] == 0, stats
         # every frame that arrived was refused with its reason, none failed in the network
-        assert stats["frames_dropped"]["unsupported_image_too_small"] == (
-            stats["cameras"]["cam_tiny"]["images"]
+        assert (
+            stats["frames_dropped"]["unsupported_image_too_small"]
+            == (stats["cameras"]["cam_tiny"]["images"])
         ), stats
     finally:
         daemon.stop()

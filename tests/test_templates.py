@@ -40,7 +40,7 @@ def test_an_image_rotation_is_the_turned_camera(robi_catalog, inplane_deg):
 
 
 def test_parallel_banks_equal_sequential_ones(robi_catalog, tmp_path):
-    models = [robi_catalog[k] for k in robi_catalog]
+    models = [robi_catalog[k] for k in sorted(robi_catalog)[:3]]  # 3 parts on 2 workers
     parallel = build_template_banks(models, cache_dir=tmp_path / "p", workers=2)
     for model in models:
         one = build_template_bank(model, cache_dir=tmp_path / "s", show_progress=False)

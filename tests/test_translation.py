@@ -114,8 +114,10 @@ def test_outlier_view_is_downweighted():
     ],
 )
 def test_bad_measurements_are_refused(cov, uv):
-    why = "must be finite" if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(uv)) else (
-        "not positive definite"
+    why = (
+        "must be finite"
+        if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(uv))
+        else ("not positive definite")
     )
     with pytest.raises(ValueError, match=f"^center measurement: .*{why}"):
         CenterObservations.empty().append(np.eye(4), CAM.K, np.array(uv), cov, 0)
@@ -345,9 +347,7 @@ def test_huber_weights_are_one_inside_and_k_over_root_outside():
     s = np.array([0.0, 0.25, 0.5, 4.0, 9.0])
     np.testing.assert_allclose(_huber_weights(s, 2.0), [1, 1, 1, 1, 2 / 3])
     # a threshold below one standard deviation: 0.5 / sqrt(0.5) for s = 0.5
-    np.testing.assert_allclose(
-        _huber_weights(s, 0.5), [1, 1, 0.5 / np.sqrt(0.5), 0.25, 0.5 / 3]
-    )
+    np.testing.assert_allclose(_huber_weights(s, 0.5), [1, 1, 0.5 / np.sqrt(0.5), 0.25, 0.5 / 3])
 
 
 def test_a_measurement_keeps_its_inverse_covariance_and_integer_stamp():

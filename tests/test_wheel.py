@@ -48,8 +48,19 @@ def installed(tmp_path_factory):
         shutil.copy2(REPO / f, src / f)
     dist = tmp / "dist"
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation",
-         "-q", "--disable-pip-version-check", "-w", str(dist)],
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            str(src),
+            "--no-deps",
+            "--no-build-isolation",
+            "-q",
+            "--disable-pip-version-check",
+            "-w",
+            str(dist),
+        ],
         check=True,
         timeout=180,
     )
@@ -63,14 +74,27 @@ def installed(tmp_path_factory):
     )
     python = venv / "bin" / "python"
     subprocess.run(
-        [str(python), "-m", "pip", "install", "--no-deps", "--no-index", "--ignore-installed",
-         "-q", "--disable-pip-version-check", str(wheel)],
+        [
+            str(python),
+            "-m",
+            "pip",
+            "install",
+            "--no-deps",
+            "--no-index",
+            "--ignore-installed",
+            "-q",
+            "--disable-pip-version-check",
+            str(wheel),
+        ],
         check=True,
         timeout=180,
     )
     site = subprocess.run(
         [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-        capture_output=True, text=True, check=True, timeout=60,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
     ).stdout.strip()
     return python, Path(site) / "posefuse", src, files
 
@@ -140,9 +164,19 @@ def test_the_installed_wheel_helps_replays_and_serves_outside_the_checkout(insta
     zport, hport = free_port(), free_port()
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     daemon = subprocess.Popen(
-        [str(bin_dir / "posefuse"), "serve", "--listen", f"tcp/127.0.0.1:{zport}",
-         "--http-port", str(hport)],
-        cwd=elsewhere, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        [
+            str(bin_dir / "posefuse"),
+            "serve",
+            "--listen",
+            f"tcp/127.0.0.1:{zport}",
+            "--http-port",
+            str(hport),
+        ],
+        cwd=elsewhere,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     base = f"http://127.0.0.1:{hport}"
     try:
