@@ -193,3 +193,136 @@ def test_a_person_overrides_detection_with_a_spec():
     for bad in ("1", "73", "five", "4:w"):
         with pytest.raises(ValueError, match="symmetry"):
             symmetry_from_spec(bad, mesh, d)
+
+
+# ---------------------------------------------------------------- a person's spec, summaries
+
+
+def _rotation_axis_of(T):
+    rotvec = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    return np.abs(rotvec / np.linalg.norm(rotvec))
+
+
+@pytest.mark.parametrize("name, index", [("x", 0), ("y", 1), ("z", 2)])
+def test_a_spec_turns_about_the_object_axis_it_names(name, index):
+    from posefuse.estimator.symmetry import symmetry_from_spec
+
+    box = trimesh.creation.box([0.10, 0.06, 0.03])
+    disc, cont = symmetry_from_spec(f"2:{name}", box, mesh_diameter(box))
+    assert cont == () and disc.shape == (1, 4, 4)
+    np.testing.assert_allclose(_rotation_axis_of(disc[0]), np.eye(3)[index], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "extents, main", [([0.10, 0.02, 0.03], 0), ([0.10, 0.09, 0.01], 2), ([0.02, 0.10, 0.03], 1)]
+)
+def test_main_without_detection_is_the_principal_axis_that_stands_apart(extents, main):
+    """A rod's long axis, a plate's normal: the moment farthest from the other two."""
+    from posefuse.estimator.symmetry import symmetry_from_spec
+
+    box = trimesh.creation.box(extents)
+    _, cont = symmetry_from_spec("continuous", box, mesh_diameter(box))
+    np.testing.assert_allclose(np.abs(cont[0].axis), np.eye(3)[main], atol=1e-9)
+    disc, _ = symmetry_from_spec("2", box, mesh_diameter(box))
+    np.testing.assert_allclose(_rotation_axis_of(disc[0]), np.eye(3)[main], atol=1e-9)
+
+
+def test_main_is_the_detected_axis_else_the_first_alternative():
+    from posefuse.estimator.symmetry import SymmetryAxis, SymmetryReport, symmetry_from_spec
+
+    box = trimesh.creation.box([0.10, 0.02, 0.03])  # principal axis x
+    d = mesh_diameter(box)
+    claimed = SymmetryReport(np.zeros((0, 4, 4)), (), axes=(SymmetryAxis((0, 1, 0), 2, 0.0),))
+    flagged = SymmetryReport(
+        np.zeros((0, 4, 4)), (), alternatives=(SymmetryAxis((0, 0, 1), 4, 0.03),)
+    )
+    for report, expected in ((claimed, [0, 1, 0]), (flagged, [0, 0, 1])):
+        _, cont = symmetry_from_spec("continuous", box, d, report)
+        np.testing.assert_allclose(np.abs(cont[0].axis), expected, atol=1e-12)
+
+
+def test_a_continuous_spec_passes_through_the_surface_centroid():
+    from posefuse.estimator.symmetry import symmetry_from_spec
+
+    offset = np.array([0.01, -0.02, 0.03])
+    box = trimesh.creation.box([0.10, 0.02, 0.03])
+    box.apply_translation(offset)
+    disc, cont = symmetry_from_spec("continuous:z", box, mesh_diameter(box))
+    assert disc.shape == (0, 4, 4) and len(cont) == 1
+    np.testing.assert_allclose(cont[0].offset, offset, atol=1e-9)
+    np.testing.assert_allclose(cont[0].axis, [0, 0, 1])
+
+
+def test_a_spec_accepts_orders_from_2_to_max_order():
+    from posefuse.estimator.symmetry import MAX_ORDER, symmetry_from_spec
+
+    box = trimesh.creation.box([0.10, 0.06, 0.03])
+    d = mesh_diameter(box)
+    assert symmetry_from_spec("2:z", box, d)[0].shape == (1, 4, 4)
+    assert symmetry_from_spec(f"{MAX_ORDER}:z", box, d)[0].shape == (MAX_ORDER - 1, 4, 4)
+    with pytest.raises(ValueError, match=f"2 <= N <= {MAX_ORDER}"):
+        symmetry_from_spec(f"{MAX_ORDER + 1}:z", box, d)
+
+
+def _turn(axis, angle):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.asarray(axis, float) * angle).as_matrix()
+    return T
+
+
+def test_summaries_name_each_axis_by_its_largest_order():
+    from posefuse.estimator.symmetry import _group_closure
+
+    # the identity in the list is skipped, not the end of it
+    assert describe_symmetries(np.stack([np.eye(4), _turn([0, 0, 1], np.pi)]), []) == (
+        "2-fold about z"
+    )
+    # an 8-fold group holds turns of 45, 90 and 135 degrees: the axis is 8-fold
+    eight = _group_closure([_turn([0, 0, 1], np.pi / 4)], scale=1.0)
+    assert describe_symmetries(eight, []) == "8-fold about z"
+    # dihedral: the 6-fold axis first, then its six flips
+    d6 = _group_closure([_turn([0, 0, 1], np.pi / 3), _turn([1, 0, 0], np.pi)], scale=1.0)
+    assert len(d6) == 11
+    assert describe_symmetries(d6, []) == "6-fold about z; 2-fold about 6 axes"
+    flips = describe_symmetries([_turn([1, 0, 0], np.pi)], [ContinuousSymmetry((0.0, 0.0, 1.0))])
+    assert flips == (
+        "continuous about z; 2-fold about x; with the flips about every axis perpendicular to it"
+    )
+    from posefuse.estimator.symmetry import SymmetryAxis
+
+    assert SymmetryAxis((0.6, 0.8, 0.0), 3, 0.0).name() == "3-fold about [0.600, 0.800, 0.000]"
+
+
+def test_a_continuous_axis_is_discretised_in_equal_steps_around_the_whole_turn():
+    T = symmetry_transforms(
+        np.zeros((0, 4, 4)), [ContinuousSymmetry((0.0, 0.0, 1.0))], max_step_rad=np.deg2rad(10.0)
+    )
+    assert T.shape == (36, 4, 4)
+    angles = np.sort(np.mod(Rotation.from_matrix(T[:, :3, :3]).as_rotvec()[:, 2], 2 * np.pi))
+    np.testing.assert_allclose(angles, np.deg2rad(10.0) * np.arange(36), atol=1e-9)
+
+
+# ------------------------------------------------------------------ the sweep for 2-fold axes
+
+
+@pytest.mark.parametrize("normal", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+def test_the_flip_sweep_finds_the_best_axis_perpendicular_to_any_normal(normal):
+    from posefuse.estimator.symmetry import _sweep_flip
+
+    normal = np.array(normal)
+    # the true flip axis: perpendicular to the normal, at an angle no coarse grid starts on
+    other = np.roll(normal, 1)
+    target = np.cos(1.1) * other + np.sin(1.1) * np.cross(normal, other)
+
+    def flip_score(b):
+        return 1.0 - abs(float(np.dot(b, target)))
+
+    found = _sweep_flip(normal, np.pi, flip_score, tol_frac=0.025)
+    assert found is not None and found.order == 2
+    assert abs(np.dot(found.axis, target)) > 1 - 1e-8 and found.residual < 1e-8
+    # about a continuous axis every perpendicular flip is alike: the score of one decides,
+    # and a score at the tolerance passes
+    at_tol = _sweep_flip(normal, 0.0, lambda b: 0.025, tol_frac=0.025)
+    assert at_tol is not None and at_tol.residual == 0.025
+    assert np.isfinite(at_tol.axis).all() and abs(np.dot(at_tol.axis, normal)) < 1e-12
+    assert _sweep_flip(normal, 0.0, lambda b: 0.0251, tol_frac=0.025) is None
