@@ -214,7 +214,15 @@ def test_a_spec_turns_about_the_object_axis_it_names(name, index):
 
 
 @pytest.mark.parametrize(
-    "extents, main", [([0.10, 0.02, 0.03], 0), ([0.10, 0.09, 0.01], 2), ([0.02, 0.10, 0.03], 1)]
+    "extents, main",
+    [
+        ([0.10, 0.02, 0.03], 0),
+        ([0.10, 0.09, 0.01], 2),
+        ([0.02, 0.10, 0.03], 1),
+        # moments 1 : 1.9 : 4.4: the largest stands apart (gaps 0.9 and 2.5), though the sum of
+        # the two smaller ones (2.9) is more than either gap
+        ([0.10, 0.06, 0.04], 0),
+    ],
 )
 def test_main_without_detection_is_the_principal_axis_that_stands_apart(extents, main):
     """A rod's long axis, a plate's normal: the moment farthest from the other two."""
