@@ -222,7 +222,7 @@ def wait_for_subscribers(session, keys, timeout_s: float) -> list[str]:
             p.undeclare()
 
 
-def put_camera_message(session, key: str, payload: bytes, **options) -> None:
+def put_camera_message(session, key: str, payload: bytes) -> None:
     """Put one camera message (info, pose or image) so that a busy link delays it instead
     of losing it.
 
@@ -233,4 +233,4 @@ def put_camera_message(session, key: str, payload: bytes, **options) -> None:
     dropped by its own per-camera queues, where it is counted."""
     import zenoh
 
-    session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, **options)
+    session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
