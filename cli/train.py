@@ -42,6 +42,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         max_iterations=args.iterations,
         batch=args.batch,
         crop_batch=args.crop_batch,
+        lr=args.lr,
+        crop_box_channel=args.box_channel,
         seed=args.seed,
         workers=args.workers,
         robi_fraction=args.robi_fraction,
@@ -90,6 +92,15 @@ def register(subparsers) -> None:
         "checkpoint's)",
     )
     p.add_argument("--batch", type=int, default=16, help="detector crops per step")
+    p.add_argument(
+        "--lr", type=float, default=2e-3, help="peak learning rate of the schedule (AdamW)"
+    )
+    p.add_argument(
+        "--box-channel",
+        action="store_true",
+        help="give stage two the box as a fourth input channel (with --init from a checkpoint "
+        "without it, its first layer is widened with zero weights)",
+    )
     p.add_argument("--crop-batch", type=int, default=48, help="stage-two crops per step")
     p.add_argument(
         "--data-dir",

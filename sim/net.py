@@ -63,10 +63,10 @@ class Backbone(nn.Module):
     detector's class heatmaps are the one class-specific part, so a new catalog replaces
     that head and fine-tunes the rest)."""
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, in_channels: int = 3):
         super().__init__()
         w = width
-        self.enc1 = nn.Sequential(_block(3, w, 2), _block(w, w))  # 1/2
+        self.enc1 = nn.Sequential(_block(in_channels, w, 2), _block(w, w))  # 1/2
         self.enc2 = nn.Sequential(_block(w, 2 * w, 2), _block(2 * w, 2 * w))  # 1/4
         self.enc3 = nn.Sequential(_block(2 * w, 4 * w, 2), _block(4 * w, 4 * w))  # 1/8
         self.enc4 = nn.Sequential(_block(4 * w, 6 * w, 2), _block(6 * w, 6 * w, dilation=2))
@@ -117,12 +117,13 @@ class CropVotingNet(nn.Module):
     belong to the part the crop is centred on, and a unit vector from each towards its
     projected model origin. Class-agnostic (the class comes from stage one).
 
-    Input (B, 3, S, S); output (B, 3, S / 4, S / 4): the object-vs-not logit, then the unit
-    vector (x, y)."""
+    Input (B, 3, S, S), or (B, 4, S, S) with ``box_channel``: the normalised RGB, then the
+    box stage one gave (1 inside, 0 outside; see ``estimator.frontend.crops.box_mask``).
+    Output (B, 3, S / 4, S / 4): the object-vs-not logit, then the unit vector (x, y)."""
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, box_channel: bool = False):
         super().__init__()
-        self.backbone = Backbone(width)
+        self.backbone = Backbone(width, 4 if box_channel else 3)
         c = self.backbone.out_channels
         self.neck = _block(c, c)
         self.head = nn.Conv2d(c, 3, 1)

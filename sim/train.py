@@ -74,6 +74,7 @@ class TrainConfig:
     lr: float = 2e-3
     warmup: int = 500
     width: int = 16
+    crop_box_channel: bool = False  # stage two gets the box as a fourth input channel
     seed: int = 0
     workers: int = 2
     robi_fraction: float = 0.5
@@ -131,6 +132,7 @@ _STREAM_FIELDS = (
     "lr",
     "warmup",
     "width",
+    "crop_box_channel",
     "seed",
     "robi_fraction",
     "restarts",
@@ -154,7 +156,7 @@ class _Nets:
         self.config = config
         self.n_classes = n_classes
         self.det = BoxDetectorNet(n_classes, config.width)
-        self.crop = CropVotingNet(config.width)
+        self.crop = CropVotingNet(config.width, config.crop_box_channel)
         if config.bf16:
             self.det = self.det.to(memory_format=torch.channels_last)
             self.crop = self.crop.to(memory_format=torch.channels_last)
@@ -185,11 +187,15 @@ class _Nets:
         for g in self.opt.param_groups:
             g["lr"] = lr
         images, heat, weight, box, box_mask = det_batch
-        crops, label, vec = crop_batch_
+        crops, box_masks, label, vec = crop_batch_
         heat, weight = torch.from_numpy(heat), torch.from_numpy(weight).unsqueeze(1)
         box, box_mask = torch.from_numpy(box), torch.from_numpy(box_mask).unsqueeze(1)
         label, vec = torch.from_numpy(label).unsqueeze(1), torch.from_numpy(vec)
         x_det, x_crop = self._input(images, gen), self._input(crops, gen)
+        if self.config.crop_box_channel:
+            x_crop = torch.cat([x_crop, torch.from_numpy(box_masks).float().unsqueeze(1)], 1)
+            if self.config.bf16:
+                x_crop = x_crop.contiguous(memory_format=torch.channels_last)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.config.bf16):
             logits, box_out = self.det.forward_logits(x_det)
             crop_out = self.crop(x_crop)
@@ -232,8 +238,10 @@ class _Nets:
         self.opt.load_state_dict(state["opt"])
 
     def init_from(self, state: dict) -> list[str]:
-        """Start from another catalog's weights: everything but the class heatmaps (the one
-        class-specific head) when the class count differs; returns the layers left fresh."""
+        """Start from another checkpoint's weights: everything but the class heatmaps (the one
+        class-specific head) when the class count differs, and stage two's first layer widened
+        with zeros when this one adds the box channel; returns the layers left fresh."""
+        torch = self.torch
         det = self.det.state_dict()
         fresh = []
         for k, v in state["det"].items():
@@ -242,7 +250,18 @@ class _Nets:
             else:
                 fresh.append(k)
         self.det.load_state_dict(det)
-        self.crop.load_state_dict(state["crop"])
+        crop = self.crop.state_dict()
+        for k, v in state["crop"].items():
+            if v.ndim == 4 and crop[k].shape[1] > v.shape[1] and crop[k].shape[0] == v.shape[0]:
+                # a stage two without the box channel: its weights for the new input start at
+                # zero, so the network begins as the one it comes from
+                w = torch.zeros_like(crop[k])
+                w[:, : v.shape[1]] = v
+                crop[k] = w
+                fresh.append(f"crop.{k} (box channel)")
+            else:
+                crop[k] = v
+        self.crop.load_state_dict(crop)
         return fresh
 
     def export(self, model_path: Path, card: ModelCard) -> None:
@@ -266,7 +285,7 @@ class _Nets:
         S = self.config.crop_size
         torch.onnx.export(
             crop,
-            (torch.zeros(2, 3, S, S),),
+            (torch.zeros(2, 4 if self.config.crop_box_channel else 3, S, S),),
             str(crop_path),
             dynamo=False,
             opset_version=17,
@@ -303,6 +322,7 @@ def _card(
             "crop_size": config.crop_size,
             "crop_stride": CROP_STRIDE,
             "box_scale": BatchConfig().box_scale,
+            "box_channel": config.crop_box_channel,
         },
         extra=extra,
     )
@@ -394,9 +414,10 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS and k != "restarts"
+                if k in _STREAM_FIELDS and k not in ("restarts", "crop_box_channel")
             },
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
+            crop_box_channel=bool(stored.get("crop_box_channel", False)),
         )
         if config.extend is not None:
             config = config.extended(*config.extend)
@@ -411,10 +432,19 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     )
     val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
     render_minutes = (time.time() - t_render) / 60
-    nets = _Nets(len(catalog), config)
-    step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
+    base = None
     if config.init and state is None:
         base = torch.load(config.init, map_location="cpu", weights_only=False)
+        stored = base.get("config", {})
+        # a fine-tune keeps the architecture it starts from (and may add the box channel)
+        config = dataclasses.replace(
+            config,
+            width=int(stored.get("width", config.width)),
+            crop_box_channel=bool(stored.get("crop_box_channel")) or config.crop_box_channel,
+        )
+    nets = _Nets(len(catalog), config)
+    step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
+    if base is not None:
         fresh = nets.init_from(base["nets"])
         tqdm.write(f"fine-tuning from {config.init}; new layers: {', '.join(fresh) or 'none'}")
     if state is not None:
@@ -424,7 +454,10 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     view_rows = ts.view_instances()
     candidates = np.flatnonzero(ts.instances[:, 9] >= MIN_TARGET_VISIB)
     batch_config = BatchConfig(
-        det_batch=config.batch, crop_batch=config.crop_batch, crop_size=config.crop_size
+        det_batch=config.batch,
+        crop_batch=config.crop_batch,
+        crop_size=config.crop_size,
+        box_channel=config.crop_box_channel,
     )
     start = time.time()
     deadline = start + config.minutes * 60
@@ -506,7 +539,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         "architecture": (
             f"two stages: BoxDetectorNet(width={config.width}) "
             f"{sum(p.numel() for p in nets.det.parameters())} parameters, "
-            f"CropVotingNet(width={config.width}) "
+            f"CropVotingNet(width={config.width}, box_channel={config.crop_box_channel}) "
             f"{sum(p.numel() for p in nets.crop.parameters())} parameters"
         ),
         "training": {

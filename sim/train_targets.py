@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from posefuse.estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
 
 DET_STRIDE = 4
 CROP_STRIDE = 4
@@ -38,6 +38,8 @@ class BatchConfig:
     center_jitter: float = 0.12  # x the box's longer side
     scale_jitter: float = 0.2  # log scale
     background_crops: float = 0.1  # share of crop samples centred on no part
+    box_channel: bool = False  # stage two also gets the box (jittered in aspect as well)
+    aspect_jitter: float = 0.1  # log scale of the box's width and height apart
     on_part: float = 0.85  # share of detector crops that hold a part's center
 
 
@@ -164,7 +166,10 @@ def crop_targets(
 
 
 def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np.ndarray):
-    """(crops (B, S, S, 3) uint8, label (B, g, g), vec (B, 2, g, g)).
+    """(crops (B, S, S, 3) uint8, boxes (B, S, S) uint8, label (B, g, g), vec (B, 2, g, g)).
+
+    ``boxes`` is the jittered box each crop was cut around (``box_mask``): stage two's fourth
+    input channel when ``config.box_channel``; zeros otherwise.
 
     Args:
         candidates: indices of the instance rows that may be drawn (visible enough).
@@ -172,7 +177,7 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
     rows = ts.instances[candidates[rng.integers(len(candidates), size=config.crop_batch)]]
     S = config.crop_size
     H, W = ts.full_rgb.shape[1:3]
-    crops, labels, vecs = [], [], []
+    crops, masks, labels, vecs = [], [], [], []
     for r in rows:
         view = int(r[0])
         x0, y0, x1, y1 = r[5:9]
@@ -183,21 +188,33 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
             center = np.array([rng.uniform(0, W), rng.uniform(0, H)])
             k = -1
         center = center + rng.uniform(-1, 1, 2) * config.center_jitter * side
-        crop_side = max(
-            config.box_scale * side * np.exp(rng.uniform(-1, 1) * config.scale_jitter), 16.0
-        )
+        scale = np.exp(rng.uniform(-1, 1) * config.scale_jitter)
+        if config.box_channel:
+            # the box as stage one would give it: its width and height err apart
+            box_size = np.array([x1 - x0, y1 - y0], np.float64) * scale
+            box_size *= np.exp(rng.uniform(-1, 1, 2) * config.aspect_jitter)
+            crop_side = max(config.box_scale * float(box_size.max()), 16.0)
+        else:
+            crop_side = max(config.box_scale * side * scale, 16.0)
         a, b = crop_transform(center, crop_side, S)
         crop = warp_crop(ts.full_rgb[view], a, b, S, cv2.INTER_LINEAR)
+        mask = (
+            box_mask(center, box_size, a, b, S)
+            if config.box_channel
+            else np.zeros((S, S), np.uint8)
+        )
         label, vec = crop_targets(ts.full_inst[view], k, r[3:5], a, b, S)
         if k >= 0 and label.sum() == 0:
             k = -1
         if rng.random() < 0.5:
-            crop, label, vec = (
+            crop, mask, label, vec = (
                 crop[:, ::-1],
+                mask[:, ::-1],
                 label[:, ::-1],
                 vec[:, :, ::-1] * np.array([-1, 1], np.float32)[:, None, None],
             )
         crops.append(np.ascontiguousarray(crop))
+        masks.append(np.ascontiguousarray(mask))
         labels.append(np.ascontiguousarray(label))
         vecs.append(np.ascontiguousarray(vec))
-    return np.stack(crops), np.stack(labels), np.stack(vecs)
+    return np.stack(crops), np.stack(masks), np.stack(labels), np.stack(vecs)

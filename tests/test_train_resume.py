@@ -84,6 +84,23 @@ def test_fine_tuning_replaces_only_the_class_heatmaps(tmp_path):
     assert np.isclose(float(other.det.heatmap.bias[0]), -2.19)
 
 
+def test_stage_two_widened_for_the_box_channel_starts_as_the_one_it_comes_from(tmp_path):
+    from posefuse.sim.train import _Nets
+
+    base = _Nets(5, _config(tmp_path, bf16=False))
+    wide = _Nets(5, _config(tmp_path, bf16=False, crop_box_channel=True, seed=1))
+    fresh = wide.init_from({"det": base.det.state_dict(), "crop": base.crop.state_dict()})
+    assert fresh == ["crop.backbone.enc1.0.0.weight (box channel)"]
+    base.crop.eval(), wide.crop.eval()
+    x = torch.randn(2, 3, 96, 96, generator=torch.Generator().manual_seed(0))
+    box = (torch.rand(2, 1, 96, 96) > 0.5).float()
+    with torch.no_grad():
+        assert torch.allclose(base.crop(x), wide.crop(torch.cat([x, box], 1)), atol=1e-5)
+        # and it can learn to use the box: the new input has its own weights
+        wide.crop.backbone.enc1[0][0].weight[:, 3] += 0.1
+        assert not torch.allclose(base.crop(x), wide.crop(torch.cat([x, box], 1)), atol=1e-3)
+
+
 def test_a_warm_restart_repeats_the_schedule_from_its_own_peak():
     config = TrainConfig(max_iterations=100, warmup=10, lr=2e-3).extended(50, 1e-3)
     assert config.total_steps == 150 and config.restarts == ((100, 150, 1e-3),)

@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from posefuse.estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
 from posefuse.estimator.frontend.two_stage import (
     TwoStageConfig,
+    box_masks,
     crop_boxes,
     decode_boxes,
     suppress_duplicates,
@@ -17,7 +18,7 @@ from posefuse.estimator.frontend.two_stage import (
 from posefuse.estimator.frontend.voting import VotingConfig
 from posefuse.service.resources import DEFAULT_CATALOG
 from posefuse.sim.train_data import render_scene
-from posefuse.sim.train_targets import BatchConfig, crop_targets, det_targets
+from posefuse.sim.train_targets import BatchConfig, crop_batch, crop_targets, det_targets
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +121,50 @@ def test_crops_of_boxes_and_duplicates(view):
 
     kept = suppress_duplicates([det(10, 0.5), det(12, 0.9), det(40, 0.4)], 0.3)
     assert [d.score for d in kept] == [0.9, 0.4]
+
+
+def test_the_box_channel_marks_the_crop_pixels_inside_the_box(view):
+    rgb, _, small, rows = view
+    heat, _, box, _ = det_targets(rows, 0.5, (0, 0), (small.shape[0] // 4, small.shape[1] // 4), 5)
+    config = TwoStageConfig(min_score=0.99)
+    boxes = decode_boxes(np.concatenate([heat, box], 0), 0.5, config)
+    _, transforms = crop_boxes(rgb, boxes, config)
+    masks = box_masks(boxes, transforms, config)
+    assert masks.shape == (len(boxes), 96, 96) and masks.dtype == np.uint8 and len(boxes) > 2
+    p = np.arange(96.0)
+    for bx, (a, b), m in zip(boxes, transforms, masks, strict=True):
+        # a crop pixel is marked exactly when its center, in image pixels, lies in the box
+        x, y = a * p + b[0], a * p + b[1]
+        lo, hi = bx.center - bx.size / 2, bx.center + bx.size / 2
+        inside = ((y >= lo[1]) & (y <= hi[1]))[:, None] & ((x >= lo[0]) & (x <= hi[0]))[None]
+        assert np.array_equal(m.astype(bool), inside)
+        # the crop is box_scale x the longer side: that side spans 96 / 1.2 = 80 crop pixels
+        extent = max(m.any(0).sum(), m.any(1).sum())
+        assert abs(extent - 96 / config.box_scale) <= 1
+    # a wide box and a tall one in the same square crop tell themselves apart
+    a, b = crop_transform(np.array([50.0, 50.0]), 48.0, 96)
+    wide = box_mask(np.array([50.0, 50.0]), np.array([40.0, 10.0]), a, b, 96)
+    tall = box_mask(np.array([50.0, 50.0]), np.array([10.0, 40.0]), a, b, 96)
+    assert np.array_equal(wide, tall.T) and wide.any(0).sum() == 80 and wide.any(1).sum() == 20
+
+
+def test_training_crops_carry_the_box_they_were_cut_around(view):
+    from types import SimpleNamespace
+
+    rgb, inst, _, rows = view
+    ts = SimpleNamespace(full_rgb=rgb[None], full_inst=inst[None], instances=rows)
+    candidates = np.flatnonzero(rows[:, 9] > 0.75)
+    config = BatchConfig(crop_batch=24, background_crops=0.0, box_channel=True)
+    crops, masks, labels, _ = crop_batch(ts, config, np.random.default_rng(3), candidates)
+    assert masks.shape == crops.shape[:3] and labels.shape == (24, 24, 24)
+    inside = []
+    for m, lab in zip(masks, labels, strict=True):
+        assert m.any()
+        on_part = lab > 0
+        if on_part.any():  # the part's pixels (mirrored with the crop) lie in its box
+            inside.append(m[1::4, 1::4][on_part].mean())
+    assert np.median(inside) > 0.9
+    # without the channel the masks are zeros and the crops are those of before
+    plain = BatchConfig(crop_batch=24, background_crops=0.0)
+    crops0, masks0, _, _ = crop_batch(ts, plain, np.random.default_rng(3), candidates)
+    assert not masks0.any() and crops0.shape == crops.shape

@@ -52,3 +52,25 @@ def warp_crop(
         flags=interpolation | cv2.WARP_INVERSE_MAP,
         borderMode=cv2.BORDER_REPLICATE,
     )
+
+
+def box_mask(
+    center: np.ndarray, size: np.ndarray, a: float, b: np.ndarray, crop_size: int
+) -> np.ndarray:
+    """The (crop_size, crop_size) uint8 mask, 1 where a crop pixel's center lies in the box.
+
+    Stage two's fourth input channel: the crop is square, so without it the network cannot
+    tell a wide box from a tall one, nor which of two touching parts the box is of.
+
+    Args:
+        center: (2,) the box's center, image pixels (x, y).
+        size: (2,) its width and height, image pixels.
+        a, b: the crop's transform (image = a * crop + b).
+    """
+    half = 0.5 * np.asarray(size, np.float64)
+    lo = (np.asarray(center, np.float64) - half - b) / a
+    hi = (np.asarray(center, np.float64) + half - b) / a
+    p = np.arange(crop_size, dtype=np.float64)
+    inside_x = (p >= lo[0]) & (p <= hi[0])
+    inside_y = (p >= lo[1]) & (p <= hi[1])
+    return (inside_y[:, None] & inside_x[None, :]).astype(np.uint8)

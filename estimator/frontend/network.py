@@ -27,6 +27,7 @@ from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.two_stage import (
     Box,
     TwoStageConfig,
+    box_masks,
     crop_boxes,
     decode_boxes,
     suppress_duplicates,
@@ -317,12 +318,16 @@ class NetworkFrontend:
                 detections.append(Detection(obj_id, bbox, center, cov, mask, score))
         return detections
 
-    def crop_infer(self, crops: np.ndarray) -> np.ndarray:
-        """(N, S, S, 3) uint8 crops -> (N, 3, g, g) stage-two output."""
+    def crop_infer(self, crops: np.ndarray, masks: np.ndarray | None = None) -> np.ndarray:
+        """(N, S, S, 3) uint8 crops [and (N, S, S) uint8 box masks, for a stage two with the
+        box channel] -> (N, 3, g, g) stage-two output."""
         x = (crops.astype(np.float32) / 255.0 - np.float32(self.card.mean)) / np.float32(
             self.card.std
         )
-        x = np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+        x = x.transpose(0, 3, 1, 2)
+        if masks is not None:
+            x = np.concatenate([x, masks[:, None].astype(np.float32)], 1)
+        x = np.ascontiguousarray(x)
         return self.crop_session.run(None, {self.crop_session.get_inputs()[0].name: x})[0]
 
     def _detect_two_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
@@ -351,7 +356,8 @@ class NetworkFrontend:
             return []
         config = self.two_stage
         crops, transforms = crop_boxes(image, boxes, config)
-        outs = self.crop_infer(crops)
+        masks = box_masks(boxes, transforms, config) if config.box_channel else None
+        outs = self.crop_infer(crops, masks)
         obj_ids = [k for k, _ in self.card.classes]
         return [
             vote_in_crop(

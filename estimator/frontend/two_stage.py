@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from posefuse.estimator.frontend.crops import crop_transform, warp_crop
+from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
 
@@ -39,6 +39,7 @@ class TwoStageConfig:
     min_votes: int = 10  # object pixels (crop output cells) a center needs
     duplicate_factor: float = 0.3  # same-class centers closer than this x box side: one part
     refine_passes: int = 0  # stage two again on crops centred on its own centers
+    box_channel: bool = False  # stage two takes the box as a fourth input channel
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +92,19 @@ def crop_boxes(image: np.ndarray, boxes: list[Box], config: TwoStageConfig):
         crops.append(warp_crop(image, a, b, S, cv2.INTER_LINEAR))
         transforms.append((a, b))
     return (np.stack(crops) if crops else np.zeros((0, S, S, 3), np.uint8)), transforms
+
+
+def box_masks(boxes: list[Box], transforms: list, config: TwoStageConfig) -> np.ndarray:
+    """(N, S, S) uint8: each box drawn in its own crop (stage two's box channel)."""
+    S = config.crop_size
+    if not boxes:
+        return np.zeros((0, S, S), np.uint8)
+    return np.stack(
+        [
+            box_mask(box.center, box.size, a, b, S)
+            for box, (a, b) in zip(boxes, transforms, strict=True)
+        ]
+    )
 
 
 def vote_in_crop(
