@@ -37,6 +37,7 @@ __all__ = [
     "model_edges",
     "pose_edges",
     "project_edges",
+    "project_shown",
     "sample_maps",
 ]
 
@@ -143,23 +144,23 @@ def pose_edges(
     """
     N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
-    view = edges.points[None] - c_obj[:, None]  # (N, P, 3)
-    # (N, P, 2), < 0 faces the camera (elementwise: einsum is several times slower here)
-    facing = np.stack([(view * edges.normals[None, :, k]).sum(axis=2) for k in range(2)], axis=2)
-    contour = facing[..., 0] * facing[..., 1] < 0
-    active = contour | (edges.crease[None] & (facing.min(axis=2) < 0))
+    # (p - c) . n_k = p . n_k - c . n_k, < 0 faces the camera: one (N, 3) x (3, 2P) product
+    offsets = np.einsum("pki,pi->pk", edges.normals, edges.points).reshape(-1)  # (2P,)
+    facing = (offsets[None] - c_obj @ edges.normals.reshape(-1, 3).T).reshape(N, P, 2)
+    f0, f1 = facing[..., 0], facing[..., 1]
+    contour = f0 * f1 < 0
+    active = contour | (edges.crease[None] & (np.minimum(f0, f1) < 0))
     if edges.mesh is not None:
         # hidden by the part itself: the ray from the camera meets the surface first
         n_idx, p_idx = np.nonzero(active)
         if len(n_idx):
-            ray = edges.points[p_idx] - c_obj[n_idx]
-            dist = np.linalg.norm(ray, axis=1)
-            _, rays, where = edges.mesh.ray.intersects_id(
-                c_obj[n_idx], ray / dist[:, None], multiple_hits=False, return_locations=True
-            )
-            hit = np.full(len(n_idx), np.inf)
-            hit[rays] = np.linalg.norm(where - c_obj[n_idx][rays], axis=1)
-            hidden = hit < dist - 0.005 * edges.diameter
+            # cast from the sample towards the camera, from 0.5% of the diameter off it: any
+            # hit is surface in between (nothing of the part lies behind the camera). The same
+            # test as the first hit from the camera, without computing where rays hit.
+            to_camera = c_obj[n_idx] - edges.points[p_idx]
+            to_camera /= np.linalg.norm(to_camera, axis=1)[:, None]
+            start = edges.points[p_idx] + 0.005 * edges.diameter * to_camera
+            hidden = edges.mesh.ray.intersects_any(start, to_camera)
             active[n_idx[hidden], p_idx[hidden]] = False
             contour &= active
     points = np.broadcast_to(edges.points, (N, P, 3))
@@ -198,6 +199,41 @@ def project_edges(
     return uv, angle, pts_cam
 
 
+def project_shown(
+    edges: ModelEdges,
+    shown: np.ndarray,
+    R_cam_obj: np.ndarray,
+    t_cam_obj: np.ndarray,
+    K: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`project_edges` of only the samples that show, of N poses: a pose shows a third of
+    its samples or fewer, and scoring reads no others.
+
+    Args:
+        shown: (N, P) bool (``active`` of :func:`pose_edges`). R_cam_obj: (N, 3, 3). t_cam_obj:
+        (N, 3). K: (N, 3, 3).
+    Returns:
+        pose: (M,) the pose of each shown sample, ascending; sample: (M,) its index into the
+        model's samples; uv: (M, 2) pixels; angle: (M,) projected edge direction in [0, pi).
+    """
+    pose, sample = np.nonzero(shown)
+    M = len(pose)
+    pts_cam, dirs_cam = np.empty((M, 3)), np.empty((M, 3))
+    starts = np.searchsorted(pose, np.arange(len(R_cam_obj) + 1))
+    for n in np.flatnonzero(np.diff(starts)):
+        sl = slice(starts[n], starts[n + 1])
+        pts_cam[sl] = edges.points[sample[sl]] @ R_cam_obj[n].T + t_cam_obj[n]
+        dirs_cam[sl] = edges.directions[sample[sl]] @ R_cam_obj[n].T
+    z = np.maximum(pts_cam[:, 2], 1e-6)
+    xy = pts_cam[:, :2] / z[:, None]
+    Kp = K[pose]
+    uv = np.einsum("mij,mj->mi", Kp[:, :2, :2], xy) + Kp[:, :2, 2]
+    dxy = (dirs_cam[:, :2] - xy * dirs_cam[:, 2:3]) / z[:, None]
+    duv = np.einsum("mij,mj->mi", Kp[:, :2, :2], dxy)
+    angle = np.mod(np.arctan2(duv[:, 1], duv[:, 0]), np.pi)
+    return pose, sample, uv, angle
+
+
 def _roi_affine(K: np.ndarray, t_cam_obj: np.ndarray, diameter: float, config: EdgeConfig):
     """(2, 3) image -> RoI affine map centred on the projected origin, and the RoI's K."""
     x, y, z = t_cam_obj
@@ -209,6 +245,22 @@ def _roi_affine(K: np.ndarray, t_cam_obj: np.ndarray, diameter: float, config: E
     A = np.array([[s, 0.0, c - s * u], [0.0, s, c - s * v]])
     K_roi = np.vstack([A, [0.0, 0.0, 1.0]]) @ K
     return A, K_roi
+
+
+def _covered(image: np.ndarray, A: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The part of ``image`` that the (2, 3) scale-and-shift map ``A`` (image -> RoI) reads for
+    a ``size`` x ``size`` RoI, and the map from that part to the RoI."""
+    H, W = image.shape[:2]
+    s = A[0, 0]
+    lo = (-A[:, 2]) / s  # image (x, y) of RoI pixel (0, 0)
+    hi = (size - 1 - A[:, 2]) / s
+    # at least one pixel, even where the RoI lies off the image: the map stays exact, and RoI
+    # pixels that fall outside the part read the border value
+    x0, y0 = (int(np.clip(np.floor(v) - 1, 0, n - 1)) for v, n in zip(lo, (W, H), strict=True))
+    x1, y1 = (int(np.clip(np.ceil(v) + 2, 0, n)) for v, n in zip(hi, (W, H), strict=True))
+    A_sub = A.copy()
+    A_sub[:, 2] += s * np.array([x0, y0])
+    return image[y0 : max(y1, y0 + 1), x0 : max(x1, x0 + 1)], A_sub
 
 
 def _to_u8(d: np.ndarray, truncate: float) -> np.ndarray:
@@ -235,8 +287,10 @@ def edge_view(
         raise ValueError(f"edge_view: the part is behind the camera (z = {t_cam_obj[2]:.3f} m)")
     L = config.roi_size
     A, K_roi = _roi_affine(K, t_cam_obj, diameter, config)
-    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    roi = cv2.warpAffine(gray, A, (L, L), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # warp first, then convert: only the RoI's pixels are read, not the whole frame's
+    roi = cv2.warpAffine(image, A, (L, L), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    if roi.ndim == 3:
+        roi = cv2.cvtColor(roi, cv2.COLOR_RGB2GRAY)
     edges = cv2.Canny(roi, config.canny_low, config.canny_high, L2gradient=True) > 0
     gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3)
@@ -255,9 +309,10 @@ def edge_view(
             np.minimum(dt[k], dt[(k + 1) % config.bins] + lam, out=dt[k])
     mask_dt = None
     if mask is not None:
+        sub, A_sub = _covered(np.asarray(mask), A, L)
         m = cv2.warpAffine(
-            (np.asarray(mask) != 0).astype(np.uint8),
-            A,
+            (sub != 0).astype(np.uint8),
+            A_sub,
             (L, L),
             flags=cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_CONSTANT,

@@ -28,7 +28,7 @@ from posefuse.estimator.edges import (
     EdgeView,
     ModelEdges,
     pose_edges,
-    project_edges,
+    project_shown,
     sample_maps,
 )
 from posefuse.estimator.geometry import rotation_angle, so3_exp
@@ -215,24 +215,32 @@ def score_hypotheses(
     R_cam = np.einsum("vij,hjk->hvik", R_cw, R_world_obj).reshape(-1, 3, 3)
     t_cam = (np.einsum("vij,hj->hvi", R_cw, t_world_obj) + t_cw).reshape(-1, 3)
     K = np.broadcast_to(np.array([v.K_roi for v in views]), (H, V, 3, 3)).reshape(-1, 3, 3)
-    points, directions, active, contour = pose_edges(edges, R_cam, t_cam)
-    uv, angle, _ = project_edges(points, directions, R_cam, t_cam, K)
+    _, _, active, contour = pose_edges(edges, R_cam, t_cam)
+    # only the samples that show are projected and read: pose n = h * V + v
+    pose, sample, uv, angle = project_shown(edges, active, R_cam, t_cam, K)
+    on_contour = contour[pose, sample]
     ec = config.edges
-    crease = active & ~contour
-    cost = np.zeros((H, V))
-    for v, view in enumerate(views):
-        rows = np.arange(v, H * V, V)  # this view's poses
-        b = np.floor(angle[rows] / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
-        d, _ = sample_maps(view.dcdt, b, uv[rows], ec.truncate_px)
-        terms = [(d, contour[rows], 1.0), (d, crease[rows], config.crease_weight)]
-        if view.mask_dt is not None and config.mask_weight > 0:
-            dm, _ = sample_maps(view.mask_dt, None, uv[rows], ec.truncate_px)
-            terms.append((dm, contour[rows], config.mask_weight))
-        for dist, use, weight in terms:
-            n = use.sum(axis=1)
-            mean = (dist * use).sum(axis=1) / np.maximum(n, 1) / ec.truncate_px
-            cost[:, v] += weight * np.where(n >= config.min_points, mean, 1.0)
-    return cost
+    view_of = pose % V
+    b = np.floor(angle / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
+    dcdt = np.stack([v.dcdt for v in views])  # (V, bins, L, L): one read for all views
+    d, _ = sample_maps(dcdt.reshape(-1, *dcdt.shape[2:]), view_of * ec.bins + b, uv, ec.truncate_px)
+    N = H * V
+
+    def mean_or_one(values: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """(N,) per pose: the mean of ``values`` over its ``use`` samples, truncated to [0, 1];
+        1 (no information) with fewer than ``min_points`` of them."""
+        n = np.bincount(pose, weights=use, minlength=N)
+        total = np.bincount(pose, weights=values * use, minlength=N)
+        mean = total / np.maximum(n, 1) / ec.truncate_px
+        return np.where(n >= config.min_points, mean, 1.0)
+
+    cost = mean_or_one(d, on_contour) + config.crease_weight * mean_or_one(d, ~on_contour)
+    with_mask = np.array([v.mask_dt is not None for v in views])
+    if with_mask.any() and config.mask_weight > 0:
+        masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
+        dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px)
+        cost += config.mask_weight * np.tile(with_mask, H) * mean_or_one(dm, on_contour)
+    return cost.reshape(H, V)
 
 
 def verify(
