@@ -281,3 +281,75 @@ def _restamp(view, stamp_ns):
     from dataclasses import replace
 
     return replace(view, stamp_ns=stamp_ns)
+
+
+def _random_poses(model, n, seed):
+    """(R_cam_obj (n, 3, 3), t_cam_obj (n, 3)): random turns, 0.3-0.8 m in front of a camera."""
+    rng = np.random.default_rng(seed)
+    R = np.array([so3_exp(rng.normal(0.0, 1.5, 3)) for _ in range(n)])
+    t = np.column_stack([rng.uniform(-0.1, 0.1, (n, 2)), rng.uniform(0.3, 0.8, n)])
+    return R, t
+
+
+def test_only_the_samples_that_show_are_projected_as_all_would_be(robi_catalog):
+    from posefuse.estimator.edges import project_edges, project_shown
+
+    model = _model(robi_catalog, "eye_bolt")
+    edges = _edges(model)
+    R, t = _random_poses(model, 9, seed=4)
+    K = np.broadcast_to(CAM.K, (9, 3, 3))
+    points, directions, active, _ = pose_edges(edges, R, t)
+    uv_all, angle_all, _ = project_edges(points, directions, R, t, K)
+    pose, sample, uv, angle = project_shown(edges, active, R, t, K)
+    assert len(pose) == active.sum() and np.all(np.diff(pose) >= 0)
+    assert np.array_equal(active[pose, sample], np.ones(len(pose), bool))
+    np.testing.assert_allclose(uv, uv_all[pose, sample], atol=1e-9)
+    np.testing.assert_allclose(angle, angle_all[pose, sample], atol=1e-9)
+
+
+def test_a_sample_hidden_by_the_part_is_the_first_hit_of_the_camera_ray(robi_catalog):
+    """pose_edges' occlusion test against an independent one: where the ray from the camera
+    to the sample first meets the mesh (trimesh's ray casting, with its hit locations)."""
+    model = _model(robi_catalog, "tube_fitting")
+    edges = _edges(model)
+    without_mesh = type(edges)(
+        edges.points, edges.directions, edges.normals, edges.crease, edges.diameter, None
+    )
+    R, t = _random_poses(model, 6, seed=5)
+    _, _, active, _ = pose_edges(edges, R, t)
+    _, _, facing, _ = pose_edges(without_mesh, R, t)  # the same, without the occlusion test
+    assert np.all(active <= facing)
+    hidden_somewhere = 0
+    for n in range(len(R)):
+        c_obj = -R[n].T @ t[n]
+        idx = np.flatnonzero(facing[n])
+        ray = edges.points[idx] - c_obj
+        dist = np.linalg.norm(ray, axis=1)
+        where, rays, _ = edges.mesh.ray.intersects_location(
+            np.broadcast_to(c_obj, (len(idx), 3)), ray / dist[:, None], multiple_hits=False
+        )
+        first = np.full(len(idx), np.inf)
+        first[rays] = np.linalg.norm(where - c_obj, axis=1)
+        hidden = first < dist - 0.005 * edges.diameter
+        hidden_somewhere += hidden.sum()
+        assert np.array_equal(active[n, idx], ~hidden), n
+    assert hidden_somewhere > 50  # the poses do hide samples: the test is not vacuous
+
+
+def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
+    import cv2
+
+    from posefuse.estimator.edges import _covered
+
+    rng = np.random.default_rng(6)
+    H, W, L = 120, 200, 32
+    for _ in range(60):
+        mask = np.zeros((H, W), np.uint8)
+        cx, cy = rng.uniform(-40, W + 40), rng.uniform(-40, H + 40)
+        cv2.circle(mask, (int(cx), int(cy)), int(rng.uniform(3, 30)), 1, -1)
+        s = rng.uniform(0.3, 4.0)
+        A = np.array([[s, 0.0, 15.5 - s * cx], [0.0, s, 15.5 - s * cy]])
+        whole = cv2.warpAffine(mask, A, (L, L), flags=cv2.INTER_NEAREST)
+        sub, A_sub = _covered(mask, A, L)
+        assert sub.size >= 1 and sub.size <= mask.size
+        assert np.array_equal(cv2.warpAffine(sub, A_sub, (L, L), flags=cv2.INTER_NEAREST), whole)
