@@ -45,6 +45,9 @@ DEFAULT_TESTS = {
     "mixture": ["tests/test_mixture.py"],
     "pose_error": ["tests/test_evaluation.py"],
     "symmetry": ["tests/test_symmetry.py"],
+    "verification": ["tests/test_verification.py"],
+    "edges": ["tests/test_verification.py"],
+    "refinement": ["tests/test_verification.py"],
 }
 # what the tests read besides the package: copied next to tests/ as in the checkout
 DATA_DIRS = ("catalogs", "models", "recordings")

@@ -198,3 +198,29 @@ def test_least_squares_center_equals_the_sum_of_projections():
     np.testing.assert_allclose(got_x, x, rtol=0, atol=1e-10)
     np.testing.assert_allclose(got_cov, cov, rtol=1e-10)
     assert np.linalg.norm(got_x - center) < 0.5
+
+
+def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, robi_catalog):
+    """bench.frontend_misses against score_frontend, which counts the same parts on its own:
+    every part more than 75% visible gets exactly one fate, and "found" is the score's recall."""
+    from posefuse.bench.frontend_misses import FATES, view_fates
+    from posefuse.estimator.frontend.metrics import score_frontend
+
+    dataset = load_dataset(full_res_dataset)
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    images = {v.im_id: dataset.scene(v.scene_id).load_rgb(v.im_id) for v in dataset.views()}
+
+    def stamp(view):
+        return view.scene_id * 100_000 + view.im_id
+
+    fates = []
+    for view in dataset.views():
+        fates += view_fates(frontend, images[view.im_id], view, stamp(view))[0]
+    score = score_frontend(
+        dataset,
+        lambda v: frontend.detect(images[v.im_id], stamp_seed=stamp(v)),
+        list(dataset.views()),
+    )
+    assert set(fates) <= set(FATES)
+    assert len(fates) == score.n_instances
+    assert fates.count("found") == round(score.recall * score.n_instances)

@@ -332,15 +332,15 @@ class NetworkFrontend:
 
     def _detect_two_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
         config = self.two_stage
-        boxes = decode_boxes(self.infer(image), input_scale_for(image.shape[:2], self.card), config)
+        boxes = self.boxes(image)
         rng = np.random.default_rng([self.seed, stamp_seed])
-        dets = self._stage_two(image, boxes, rng)
+        dets = self.stage_two(image, boxes, rng)
         for _ in range(config.refine_passes):
             # crop again around each voted center: the part is then the one the crop is
             # centred on, as stage two was trained to expect
             kept = [(b, d) for b, d in zip(boxes, dets, strict=True) if d is not None]
             boxes = [Box(b.class_index, d.center_uv, b.size, b.score) for b, d in kept]
-            again = self._stage_two(image, boxes, rng)
+            again = self.stage_two(image, boxes, rng)
             dets = [a if a is not None else d for a, (_, d) in zip(again, kept, strict=True)]
         dets = [
             d
@@ -350,8 +350,14 @@ class NetworkFrontend:
         dets = suppress_duplicates(dets, config.duplicate_factor)
         return sorted(dets, key=lambda d: (d.obj_id, -d.score))
 
-    def _stage_two(self, image: np.ndarray, boxes: list, rng) -> list[Detection | None]:
-        """One detection (or None) per box."""
+    def boxes(self, image: np.ndarray) -> list[Box]:
+        """Stage one of a two-stage model: the boxes and classes in one image, best first."""
+        config = self.two_stage
+        return decode_boxes(self.infer(image), input_scale_for(image.shape[:2], self.card), config)
+
+    def stage_two(self, image: np.ndarray, boxes: list[Box], rng) -> list[Detection | None]:
+        """Stage two of a two-stage model, one pass: one detection (or None) per box, before
+        the refinement pass, the spread filter and duplicate suppression."""
         if not boxes:
             return []
         config = self.two_stage
