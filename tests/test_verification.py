@@ -91,6 +91,9 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     best = verdict.R_world_obj[verdict.best]
     _, angle = closest_equivalent(best, truth, np.eye(3)[None], axis)
     assert np.rad2deg(angle) < 1.0
+    # the winner is the one component turned by a variant, and the verdict says which
+    assert verdict.component[verdict.best] == 0 and verdict.variant[verdict.best] > 0
+    np.testing.assert_allclose(best, flipped @ variants[verdict.variant[verdict.best] - 1])
     # with the first view alone it cannot choose: the flip keeps its lead or ties
     alone = verify(edges, views[:1], flipped[None], np.array([1.0]), variants, center, CONFIG)
     assert np.ptp(alone.cost) < 0.03
@@ -353,3 +356,36 @@ def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
         sub, A_sub = _covered(mask, A, L)
         assert sub.size >= 1 and sub.size <= mask.size
         assert np.array_equal(cv2.warpAffine(sub, A_sub, (L, L), flags=cv2.INTER_NEAREST), whole)
+
+
+def test_verify_asks_the_heaviest_components_and_reweights_them_by_the_views(robi_catalog):
+    """Of 20 components the 5 heaviest are verified (ties to the earlier one); the winner is the
+    true pose; every component's weight is tempered by exp(-V (cost - best) / temperature),
+    the unverified ones by the worst verified cost, and the weights still sum to one."""
+    model, T_world_obj, views = _tube(robi_catalog)
+    edges = _edges(model)
+    R_true, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    rng = np.random.default_rng(7)
+    components = []
+    for i in range(20):
+        axis = rng.normal(size=3)
+        turn = 0.0 if i == 12 else np.deg2rad(rng.uniform(30.0, 60.0))
+        components.append(R_true @ so3_exp(turn * axis / np.linalg.norm(axis)))
+    components = np.array(components)
+    prior = np.array([0.1] * 10 + [0.2] * 10)  # ten tied at the top
+    verdict = verify(edges, views, components, prior, np.zeros((0, 3, 3)), t, CONFIG)
+    assert list(verdict.component) == [10, 11, 12, 13, 14]
+    assert list(verdict.variant) == [0] * 5
+    np.testing.assert_allclose(verdict.R_world_obj, components[10:15])
+    assert verdict.component[verdict.best] == 12
+    np.testing.assert_allclose(
+        verdict.per_view, score_hypotheses(edges, views, components[10:15], t, CONFIG)
+    )
+    np.testing.assert_allclose(verdict.cost, verdict.per_view.mean(axis=1))
+    component_cost = np.full(20, verdict.cost.max())
+    component_cost[10:15] = verdict.cost
+    tempered = prior * np.exp(
+        -len(views) * (component_cost - verdict.cost.min()) / CONFIG.temperature
+    )
+    np.testing.assert_allclose(verdict.weights, tempered / tempered.sum(), rtol=1e-9)
+    assert verdict.weights[12] > 0.9  # the views agree on the truth
