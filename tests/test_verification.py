@@ -389,3 +389,98 @@ def test_verify_asks_the_heaviest_components_and_reweights_them_by_the_views(rob
     )
     np.testing.assert_allclose(verdict.weights, tempered / tempered.sum(), rtol=1e-9)
     assert verdict.weights[12] > 0.9  # the views agree on the truth
+
+
+def _dense_scores(edges, views, R_world_obj, t_world_obj, config):
+    """score_hypotheses the long way, a reference: every sample of every pose projected and
+    read, pose by pose and view by view, each term masked to the samples it counts."""
+    from posefuse.estimator.edges import project_edges, sample_maps
+
+    ec = config.edges
+    cost = np.zeros((len(R_world_obj), len(views)))
+    for h, R in enumerate(R_world_obj):
+        for v, view in enumerate(views):
+            R_cam = (view.T_cam_world[:3, :3] @ R)[None]
+            t_cam = (view.T_cam_world[:3, :3] @ t_world_obj + view.T_cam_world[:3, 3])[None]
+            points, directions, active, contour = pose_edges(edges, R_cam, t_cam)
+            uv, angle, _ = project_edges(points, directions, R_cam, t_cam, view.K_roi)
+            b = np.floor(angle[0] / (np.pi / ec.bins) + 0.5).astype(int) % ec.bins
+            d, _ = sample_maps(view.dcdt, b, uv[0], ec.truncate_px)
+            terms = [(d, contour[0], 1.0), (d, active[0] & ~contour[0], config.crease_weight)]
+            if view.mask_dt is not None and config.mask_weight > 0:
+                dm, _ = sample_maps(view.mask_dt, None, uv[0], ec.truncate_px)
+                terms.append((dm, contour[0], config.mask_weight))
+            for dist, use, weight in terms:
+                n = use.sum()
+                mean = dist[use].sum() / max(n, 1) / ec.truncate_px
+                cost[h, v] += weight * (mean if n >= config.min_points else 1.0)
+    return cost
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        CONFIG,
+        VerificationConfig(mask_weight=0.5, crease_weight=0.0),
+        VerificationConfig(mask_weight=0.0),
+    ],
+    ids=["defaults", "light mask, no creases", "no mask term"],
+)
+def test_scores_are_those_of_every_sample_read_pose_by_pose(robi_catalog, config):
+    from dataclasses import replace
+
+    model, T_world_obj, views = _tube(robi_catalog)
+    views = [views[0], replace(views[1], mask_dt=None), views[2]]  # one view without a mask
+    edges = _edges(model)
+    rng = np.random.default_rng(8)
+    R = np.array([T_world_obj[:3, :3] @ so3_exp(rng.normal(0.0, 0.4, 3)) for _ in range(5)])
+    t = T_world_obj[:3, 3]
+    got = score_hypotheses(edges, views, R, t, config)
+    np.testing.assert_allclose(got, _dense_scores(edges, views, R, t, config), atol=1e-12)
+    assert score_hypotheses(edges, [], R, t, config).shape == (5, 0)
+
+
+def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
+    """A term reads 1 ("no information") below min_points samples, its mean from min_points on.
+    Synthetic edges, no mesh: samples on a ring seen from above, whose two faces turn one to the
+    camera and one away (the contour) or both to it (shown nowhere)."""
+    from dataclasses import replace
+
+    from posefuse.estimator.edges import ModelEdges
+
+    ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
+    up, down = np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])
+    T_cam_world = make_transform(so3_exp(np.array([np.pi, 0.0, 0.0])), np.array([0, 0, 0.5]))
+    view = _flat_view(T_cam_world)
+    for n_contour, expect_info in [(0, False), (11, False), (12, True), (40, True)]:
+        normals = np.repeat(np.stack([up, up])[None], 40, axis=0)
+        normals[:n_contour, 1] = down  # these show as contour
+        edges = ModelEdges(
+            points, np.tile([0.0, 0.0, 1.0], (40, 1)), normals, np.zeros(40, bool), 0.04, None
+        )
+        cost = score_hypotheses(edges, [view], np.eye(3)[None], np.zeros(3), CONFIG)
+        no_info = 1.0 + CONFIG.crease_weight + CONFIG.mask_weight
+        chamfer = view.dcdt[0, 0, 0] / 255.0  # 2.5 px of 10, as the uint8 map stores it
+        mask = view.mask_dt[0, 0] / 255.0  # 5 px of 10
+        if expect_info:  # the contour reads the flat maps; no creases show
+            want = chamfer + CONFIG.crease_weight * 1.0 + CONFIG.mask_weight * mask
+            assert cost[0, 0] == pytest.approx(want), n_contour
+        else:
+            assert cost[0, 0] == pytest.approx(no_info), n_contour
+        without_mask = score_hypotheses(
+            edges, [replace(view, mask_dt=None)], np.eye(3)[None], np.zeros(3), CONFIG
+        )
+        mask_term = CONFIG.mask_weight * (mask if expect_info else 1.0)
+        assert without_mask[0, 0] == pytest.approx(cost[0, 0] - mask_term), n_contour
+
+
+def _flat_view(T_cam_world):
+    """An EdgeView whose chamfer maps read 2.5 px everywhere and whose mask map reads 5 px."""
+    from posefuse.estimator.edges import EdgeView
+
+    L, ec = CONFIG.edges.roi_size, CONFIG.edges
+    K_roi = np.array([[600.0, 0, (L - 1) / 2], [0, 600.0, (L - 1) / 2], [0, 0, 1]])
+    dcdt = np.full((ec.bins, L, L), round(255 * 2.5 / ec.truncate_px), np.uint8)
+    mask_dt = np.full((L, L), round(255 * 5.0 / ec.truncate_px), np.uint8)
+    return EdgeView(T_cam_world, K_roi, dcdt, mask_dt, 1)
