@@ -276,8 +276,36 @@ def test_the_score_cache_gives_what_scoring_everything_gives(robi_catalog):
     moved = t + np.array([0.02 * model.diameter, 0, 0])
     got = cached_scores(edges, views, turned, moved, CONFIG, cache)
     np.testing.assert_array_equal(got, score_hypotheses(edges, views, turned, moved, CONFIG))
+    # ... and the cache now holds the moved translation: the same call reads everything back
+    assert all(np.array_equal(e[0], moved) for e in cache.entries.values())
     cached_scores(edges, views[1:], turned, moved, CONFIG, cache)
     assert set(cache.entries) == {3, 7}
+
+
+def test_the_score_cache_keeps_what_it_scored_and_scores_only_new_views(robi_catalog):
+    model, T_world_obj, views = _tube(robi_catalog)
+    edges = _edges(model)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    hyps = np.array([R, R @ so3_exp(np.array([0.0, 0.4, 0.0]))])
+    views = [_restamp(v, stamp) for v, stamp in zip(views, (1, 3, 7), strict=True)]
+    cache = ScoreCache()
+    first = cached_scores(edges, views[:2], hyps, t, CONFIG, cache)
+    # a view arrives, the hypotheses as they were: the old views read back, the new one scored
+    got = cached_scores(edges, views, hyps, t, CONFIG, cache)
+    np.testing.assert_array_equal(got[:, :2], first)
+    np.testing.assert_array_equal(got[:, 2:], score_hypotheses(edges, views[2:], hyps, t, CONFIG))
+    # every hypothesis turned by 0.6 degree reads back, and the cache keeps the rotations it
+    # scored, not the ones it was asked about: another 0.6 degree (1.2 from the scored) is
+    # scored anew
+    step = so3_exp(np.array([0.0, 0.0, np.deg2rad(0.6)]))
+    cached_scores(edges, views, hyps @ step, t, CONFIG, cache)
+    for entry in cache.entries.values():
+        np.testing.assert_array_equal(entry[1], hyps)
+    twice = hyps @ step @ step
+    np.testing.assert_array_equal(
+        cached_scores(edges, views, twice, t, CONFIG, cache),
+        score_hypotheses(edges, views, twice, t, CONFIG),
+    )
 
 
 def _restamp(view, stamp_ns):
@@ -484,3 +512,74 @@ def _flat_view(T_cam_world):
     dcdt = np.full((ec.bins, L, L), round(255 * 2.5 / ec.truncate_px), np.uint8)
     mask_dt = np.full((L, L), round(255 * 5.0 / ec.truncate_px), np.uint8)
     return EdgeView(T_cam_world, K_roi, dcdt, mask_dt, 1)
+
+
+def _prism_points(radius_of, n_theta, half_height, shift=(0.0, 0.0, 0.0)):
+    """(N, 3) samples of a prism about z: its side r(theta) at 5 heights, and rings on its caps."""
+    theta = np.linspace(0, 2 * np.pi, n_theta, endpoint=False)
+    r = radius_of(theta)
+    ring = np.column_stack([r * np.cos(theta), r * np.sin(theta)])
+    side = [
+        np.column_stack([ring, np.full(n_theta, z)]) for z in np.linspace(-1, 1, 5) * half_height
+    ]
+    caps = [
+        np.column_stack([f * ring, np.full(n_theta, z)])
+        for z in (-half_height, half_height)
+        for f in (0.25, 0.5, 0.75)
+    ]
+    return np.vstack(side + caps) + np.asarray(shift)
+
+
+def _cube_points(side, n):
+    """(6 n^2, 3) samples of a cube's faces on a regular grid: every quarter turn maps them."""
+    g = (np.arange(n) + 0.5) / n * side - side / 2
+    u, v = (a.ravel() for a in np.meshgrid(g, g))
+    faces = []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            p = np.zeros((n * n, 3))
+            p[:, axis] = sign * side / 2
+            p[:, (axis + 1) % 3], p[:, (axis + 2) % 3] = u, v
+            faces.append(p)
+    return np.vstack(faces)
+
+
+def _turn_vectors(variants):
+    from posefuse.estimator.geometry import so3_log
+
+    return np.round(np.rad2deg(np.array([so3_log(v) for v in variants])), 3).reshape(-1, 3)
+
+
+def test_near_symmetries_turn_about_the_centroid_half_turns_first():
+    """A triangular prism away from the origin, which the catalog calls asymmetric: the half
+    turns about x, y, z come first, then the smallest turn about an axis that nearly repeats the
+    part, here a third of a turn about z through its centroid."""
+    side = 0.03
+    points = _prism_points(
+        lambda th: side / np.cos((th + np.pi / 3) % (2 * np.pi / 3) - np.pi / 3),
+        240,
+        0.01,
+        shift=(0.1, 0.02, 0.0),
+    )
+    diameter = 2 * 0.03 * 2  # the triangle's circumradius is 2 x 0.03
+    V = near_symmetries(points, diameter, np.eye(3)[None], np.zeros((0, 3)))
+    np.testing.assert_allclose(
+        _turn_vectors(V), [[180, 0, 0], [0, 180, 0], [0, 0, 180], [0, 0, 120]], atol=1e-6
+    )
+
+
+def test_near_symmetries_keep_at_most_max_variants():
+    """A cube the catalog calls asymmetric: three half turns and three quarter turns qualify;
+    the half turns come first, then the quarter turns in axis order, cut at max_variants."""
+    points = _cube_points(0.04, 12)
+    diameter = 0.04 * np.sqrt(3)
+    none = (np.eye(3)[None], np.zeros((0, 3)))
+    V = near_symmetries(points, diameter, *none)
+    np.testing.assert_allclose(
+        _turn_vectors(V), [[180, 0, 0], [0, 180, 0], [0, 0, 180], [90, 0, 0]], atol=1e-6
+    )
+    six = near_symmetries(points, diameter, *none, max_variants=6)
+    np.testing.assert_allclose(
+        _turn_vectors(six)[3:], [[90, 0, 0], [0, 90, 0], [0, 0, 90]], atol=1e-6
+    )
+    assert len(near_symmetries(points, diameter, *none, max_variants=2)) == 2
