@@ -501,6 +501,15 @@ def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
         )
         mask_term = CONFIG.mask_weight * (mask if expect_info else 1.0)
         assert without_mask[0, 0] == pytest.approx(cost[0, 0] - mask_term), n_contour
+    # with min_points 1, one contour sample is information: its own reading, not half of it
+    normals = np.repeat(np.stack([up, up])[None], 40, axis=0)
+    normals[:1, 1] = down
+    edges = ModelEdges(
+        points, np.tile([0.0, 0.0, 1.0], (40, 1)), normals, np.zeros(40, bool), 0.04, None
+    )
+    one = VerificationConfig(min_points=1)
+    cost = score_hypotheses(edges, [view], np.eye(3)[None], np.zeros(3), one)
+    assert cost[0, 0] == pytest.approx(chamfer + one.crease_weight + one.mask_weight * mask)
 
 
 def _flat_view(T_cam_world):
