@@ -592,3 +592,30 @@ def test_near_symmetries_keep_at_most_max_variants():
         _turn_vectors(six)[3:], [[90, 0, 0], [0, 90, 0], [0, 0, 90]], atol=1e-6
     )
     assert len(near_symmetries(points, diameter, *none, max_variants=2)) == 2
+
+
+def test_weights_stay_a_distribution_when_every_view_says_nothing():
+    """Six views in which no hypothesis shows an edge: every cost is "no information" (3 with
+    the default weights), the views cannot choose, and the weights are the prior's, normalised
+    (tempering by the cost above the best one, not by the cost itself, which would underflow)."""
+    from posefuse.estimator.edges import ModelEdges
+
+    ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
+    up = np.array([0.0, 0.0, 1.0])
+    blind = ModelEdges(
+        points,
+        np.tile(up, (40, 1)),
+        np.repeat(np.stack([up, up])[None], 40, axis=0),
+        np.zeros(40, bool),
+        0.04,
+        None,
+    )
+    T_cam_world = make_transform(so3_exp(np.array([np.pi, 0.0, 0.0])), np.array([0, 0, 0.5]))
+    views = [_flat_view(T_cam_world) for _ in range(6)]
+    turns = np.array([np.eye(3), so3_exp(np.array([0.0, 0.0, 1.0]))])
+    verdict = verify(
+        blind, views, turns, np.array([1.0, 3.0]), np.zeros((0, 3, 3)), np.zeros(3), CONFIG
+    )
+    np.testing.assert_allclose(verdict.cost, 1.0 + CONFIG.crease_weight + CONFIG.mask_weight)
+    np.testing.assert_allclose(verdict.weights, [0.25, 0.75])
