@@ -595,7 +595,7 @@ def test_near_symmetries_keep_at_most_max_variants():
 
 
 def test_weights_stay_a_distribution_when_every_view_says_nothing():
-    """Six views in which no hypothesis shows an edge: every cost is "no information" (3 with
+    """Eight views in which no hypothesis shows an edge: every cost is "no information" (3 with
     the default weights), the views cannot choose, and the weights are the prior's, normalised
     (tempering by the cost above the best one, not by the cost itself, which would underflow)."""
     from posefuse.estimator.edges import ModelEdges
@@ -612,7 +612,7 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
         None,
     )
     T_cam_world = make_transform(so3_exp(np.array([np.pi, 0.0, 0.0])), np.array([0, 0, 0.5]))
-    views = [_flat_view(T_cam_world) for _ in range(6)]
+    views = [_flat_view(T_cam_world) for _ in range(8)]  # exp(-8 x 6 / 0.05) is 0.0
     turns = np.array([np.eye(3), so3_exp(np.array([0.0, 0.0, 1.0]))])
     verdict = verify(
         blind, views, turns, np.array([1.0, 3.0]), np.zeros((0, 3, 3)), np.zeros(3), CONFIG
