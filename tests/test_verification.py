@@ -619,3 +619,60 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
     )
     np.testing.assert_allclose(verdict.cost, 1.0 + CONFIG.crease_weight + CONFIG.mask_weight)
     np.testing.assert_allclose(verdict.weights, [0.25, 0.75])
+
+
+def test_the_region_of_interest_is_centred_on_the_part_at_a_fixed_scale():
+    """edge_view's RoI intrinsics put the projected origin at the RoI's center and make the
+    part's diameter span diameter_px, whatever the camera (skewed, fx != fy, off-center)."""
+    from posefuse.estimator.edges import EdgeConfig
+
+    K = np.array([[910.0, 3.0, 655.0], [0.0, 870.0, 350.0], [0.0, 0.0, 1.0]])
+    image = np.zeros((720, 1280, 3), np.uint8)
+    config = EdgeConfig()
+    c = (config.roi_size - 1) / 2
+    for t_cam in ([0.03, -0.02, 0.45], [-0.1, 0.05, 0.8], [0.0, 0.0, 0.3]):
+        t_cam = np.array(t_cam)
+        view = edge_view(image, K, np.eye(4), t_cam, 0.05, config)
+        p = view.K_roi @ t_cam
+        np.testing.assert_allclose(p[:2] / p[2], [c, c], atol=1e-9)
+        # a point half a diameter to the side, at the part's depth, lies diameter_px / 2 away
+        q = view.K_roi @ (t_cam + [0.025, 0.0, 0.0])
+        f = 0.5 * (K[0, 0] + K[1, 1])
+        assert np.hypot(*(q[:2] / q[2] - c)) == pytest.approx(
+            config.diameter_px / 2 * K[0, 0] / f, rel=1e-9
+        )
+
+
+def test_projected_edges_are_where_the_camera_puts_the_points():
+    """project_edges against the pinhole model applied point by point (a skewed camera), and the
+    projected direction against the difference of two projected points along the edge."""
+    from posefuse.estimator.edges import project_edges
+
+    rng = np.random.default_rng(9)
+    K = np.array([[800.0, 12.0, 300.0], [0.0, 760.0, 260.0], [0.0, 0.0, 1.0]])
+    points = rng.uniform(-0.03, 0.03, (1, 50, 3))
+    directions = rng.normal(size=(1, 50, 3))
+    directions /= np.linalg.norm(directions, axis=2, keepdims=True)
+    R, t = so3_exp(np.array([0.4, -0.3, 0.2]))[None], np.array([[0.02, -0.01, 0.5]])
+    uv, angle, pts_cam = project_edges(points, directions, R, t, K)
+    cam = points[0] @ R[0].T + t[0]
+    pix = cam @ K.T
+    np.testing.assert_allclose(uv[0], pix[:, :2] / pix[:, 2:], atol=1e-9)
+    ahead = (points[0] + 1e-6 * directions[0]) @ R[0].T + t[0]
+    pix2 = ahead @ K.T
+    step = pix2[:, :2] / pix2[:, 2:] - pix[:, :2] / pix[:, 2:]
+    want = np.mod(np.arctan2(step[:, 1], step[:, 0]), np.pi)
+    diff = np.abs(angle[0] - want)
+    assert np.all(np.minimum(diff, np.pi - diff) < 1e-4)
+
+
+@pytest.mark.parametrize(
+    "bad", [dict(roi_size=15), dict(bins=1), dict(truncate_px=0.0), dict(truncate_px=-1.0)]
+)
+def test_an_edge_config_that_cannot_work_is_refused(bad):
+    from posefuse.estimator.edges import EdgeConfig
+
+    with pytest.raises(ValueError, match="invalid edge config"):
+        EdgeConfig(**bad)
+    # the limits themselves are allowed
+    EdgeConfig(roi_size=16, bins=2, truncate_px=0.5)
