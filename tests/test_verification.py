@@ -676,3 +676,32 @@ def test_an_edge_config_that_cannot_work_is_refused(bad):
         EdgeConfig(**bad)
     # the limits themselves are allowed
     EdgeConfig(roi_size=16, bins=2, truncate_px=0.5)
+
+
+def test_the_directional_chamfer_of_a_rectangle():
+    """edge_view on a bright rectangle seen 1:1: 3 px inside its top edge, the map of the
+    horizontal bin reads 3 px, and each bin of orientation further away adds 2.5 px (the
+    directional chamfer), up to the truncation; the mask map reads the distance to the mask's
+    boundary."""
+    from posefuse.estimator.edges import EdgeConfig
+
+    config = EdgeConfig()
+    image = np.zeros((200, 200, 3), np.uint8)
+    image[80:121, 70:131] = 200  # rows 80..120, columns 70..130
+    K = np.array([[600.0, 0.0, 100.0], [0.0, 600.0, 100.0], [0.0, 0.0, 1.0]])
+    # a 0.05 m part at 0.5 m spans 60 px, as diameter_px asks: the RoI is the image, shifted
+    mask = np.zeros((200, 200), bool)
+    mask[80:121, 70:131] = True
+    view = edge_view(image, K, np.eye(4), np.array([0.0, 0.0, 0.5]), 0.05, config, mask)
+    assert np.allclose(view.K_roi[:2, :2], K[:2, :2])
+    shift = view.K_roi[:2, 2] - K[:2, 2]  # image (x, y) -> RoI (x + shift)
+    x, y = (np.array([100.0, 83.0]) + shift).round().astype(int)  # 3 rows inside the top edge
+    read = view.dcdt[:, y, x] * config.truncate_px / 255.0
+    for b in range(config.bins):
+        away = min(b, config.bins - b)  # bins of orientation from horizontal
+        want = min(3.0 + config.bin_penalty_px * away, config.truncate_px)
+        assert read[b] == pytest.approx(want, abs=0.6), (b, read)
+    assert read[0] < read[1] < read[2] and read[7] < read[6]
+    # the vertical bin: the nearest vertical edge is 30 px away, beyond the truncation
+    assert read[4] == pytest.approx(config.truncate_px)
+    assert view.mask_dt[y, x] * config.truncate_px / 255.0 == pytest.approx(3.0, abs=1.05)
