@@ -187,6 +187,13 @@ def test_the_edges_that_show_outline_a_box_seen_face_on():
     # every shown sample lies on the rim of the face towards the camera (z = -5 mm)
     rim = (np.abs(np.abs(shown[:, 0]) - 0.02) < 1e-6) | (np.abs(np.abs(shown[:, 1]) - 0.01) < 1e-6)
     assert np.all(rim & (shown[:, 2] < 0))
+    # ... by which faces turn to the camera alone, before any occlusion test: the far rim and the
+    # edges between the side faces turn away
+    facing_only = type(edges)(
+        edges.points, edges.directions, edges.normals, edges.crease, edges.diameter, None
+    )
+    _, _, active, _ = pose_edges(facing_only, np.eye(3)[None], np.array([[0.0, 0.0, 0.5]]))
+    assert np.all(points[0][active[0]][:, 2] < 0) and active[0].sum() > 10
 
 
 def test_verify_without_views_says_nothing(robi_catalog):
@@ -705,3 +712,23 @@ def test_the_directional_chamfer_of_a_rectangle():
     # the vertical bin: the nearest vertical edge is 30 px away, beyond the truncation
     assert read[4] == pytest.approx(config.truncate_px)
     assert view.mask_dt[y, x] * config.truncate_px / 255.0 == pytest.approx(3.0, abs=1.05)
+    # 3 columns inside the left edge, the vertical bin reads 3 px and the horizontal one is far
+    x, y = (np.array([73.0, 100.0]) + shift).round().astype(int)
+    read = view.dcdt[:, y, x] * config.truncate_px / 255.0
+    assert read[4] == pytest.approx(3.0, abs=0.6) and read[0] == pytest.approx(10.0)
+    assert read[3] == pytest.approx(5.5, abs=0.6) and read[5] == pytest.approx(5.5, abs=0.6)
+
+
+def test_edge_maps_see_no_edge_where_the_image_ends():
+    """A plain grey image, the part near its corner: the RoI reaches past the image, which
+    repeats its border there, so no edge appears (every map reads the truncation)."""
+    from posefuse.estimator.edges import EdgeConfig
+
+    config = EdgeConfig()
+    image = np.full((120, 160, 3), 128, np.uint8)
+    K = np.array([[600.0, 0.0, 80.0], [0.0, 600.0, 60.0], [0.0, 0.0, 1.0]])
+    t_cam = np.array([-0.054, -0.0375, 0.5])  # projects 15 px from the top-left corner
+    view = edge_view(image, K, np.eye(4), t_cam, 0.05, config)
+    assert np.all(view.dcdt == 255)
+    with pytest.raises(ValueError, match="behind the camera"):
+        edge_view(image, K, np.eye(4), np.array([0.0, 0.0, 0.0]), 0.05, config)
