@@ -252,15 +252,20 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
             assert np.allclose(e.T_world_obj[:3, :3], track.mixture.best().R_world_obj)
 
 
+def _cache_setting(robi_catalog):
+    """(model, edges, views stamped 1, 3, 7, two hypotheses (2, 3, 3), t (3,)) of the tube."""
+    model, T_world_obj, views = _tube(robi_catalog)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    hyps = np.array([R, R @ so3_exp(np.array([0.0, 0.4, 0.0]))])
+    views = [_restamp(v, stamp) for v, stamp in zip(views, (1, 3, 7), strict=True)]
+    return model, _edges(model), views, hyps, t
+
+
 def test_the_score_cache_gives_what_scoring_everything_gives(robi_catalog):
     """cached_scores against score_hypotheses without a cache: a hypothesis within the cache's
     1 degree reads its view's cost back, one further away and every hypothesis after the
     translation moved are scored anew, and views no longer given leave the cache."""
-    model, T_world_obj, views = _tube(robi_catalog)
-    edges = _edges(model)
-    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    first = np.array([R, R @ so3_exp(np.array([0.0, 0.4, 0.0]))])
-    views = [_restamp(v, stamp) for v, stamp in zip(views, (1, 3, 7), strict=True)]
+    model, edges, views, first, t = _cache_setting(robi_catalog)
     cache = ScoreCache()
     full = score_hypotheses(edges, views, first, t, CONFIG)
     np.testing.assert_array_equal(cached_scores(edges, views, first, t, CONFIG, cache), full)
@@ -290,11 +295,7 @@ def test_the_score_cache_gives_what_scoring_everything_gives(robi_catalog):
 
 
 def test_the_score_cache_keeps_what_it_scored_and_scores_only_new_views(robi_catalog):
-    model, T_world_obj, views = _tube(robi_catalog)
-    edges = _edges(model)
-    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    hyps = np.array([R, R @ so3_exp(np.array([0.0, 0.4, 0.0]))])
-    views = [_restamp(v, stamp) for v, stamp in zip(views, (1, 3, 7), strict=True)]
+    _, edges, views, hyps, t = _cache_setting(robi_catalog)
     cache = ScoreCache()
     first = cached_scores(edges, views[:2], hyps, t, CONFIG, cache)
     # a view arrives, the hypotheses as they were: the old views read back, the new one scored
