@@ -358,10 +358,11 @@ def sample_maps(
     c = np.zeros_like(x0) if channel is None else channel
     flat = maps.reshape(-1)
     base = (c * L_y + y0) * L_x + x0
+    # as floats: differences of uint8 reads would wrap around below zero
     v00 = flat[base].astype(np.float64)
-    v01 = flat[base + 1]
-    v10 = flat[base + L_x]
-    v11 = flat[base + L_x + 1]
+    v01 = flat[base + 1].astype(np.float64)
+    v10 = flat[base + L_x].astype(np.float64)
+    v11 = flat[base + L_x + 1].astype(np.float64)
     top = v00 + fx * (v01 - v00)
     bottom = v10 + fx * (v11 - v10)
     scale = truncate / 255.0

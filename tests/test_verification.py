@@ -5,6 +5,8 @@ the truth by a second view but not by the first, refinement converges back from 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -82,8 +84,14 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     edges = _edges(screw)
     cost = score_hypotheses(edges, views, np.array([truth, flipped]), center, CONFIG)
     first, second = cost[:, 0], cost[:, 1]
-    assert abs(first[1] - first[0]) < 0.03, cost  # the first view cannot tell
     assert second[1] - second[0] > 0.08, cost  # the second sees it plainly
+    # the first cannot tell: its edges say the same of both (the disc's rim), and only the
+    # silhouette's size differs, by the 2% that the head's distance changes (a third of a RoI
+    # pixel), less than half the second view's gap
+    chamfer_only = replace(CONFIG, mask_weight=0.0)
+    edges_first = score_hypotheses(edges, views[:1], np.array([truth, flipped]), center, chamfer_only)
+    assert abs(edges_first[1, 0] - edges_first[0, 0]) < 0.01, edges_first
+    assert abs(first[1] - first[0]) < min(0.1, 0.5 * (second[1] - second[0])), cost
     # verify, given the flip as the only component, puts the truth (its variant) first
     axis = np.array([[0.0, 0.0, 1.0]])
     variants = near_symmetries(screw.points, screw.diameter, np.eye(3)[None], axis)
@@ -94,9 +102,9 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     # the winner is the one component turned by a variant, and the verdict says which
     assert verdict.component[verdict.best] == 0 and verdict.variant[verdict.best] > 0
     np.testing.assert_allclose(best, flipped @ variants[verdict.variant[verdict.best] - 1])
-    # with the first view alone it cannot choose: the flip keeps its lead or ties
+    # with the first view alone the two differ by less than half what the second view adds
     alone = verify(edges, views[:1], flipped[None], np.array([1.0]), variants, center, CONFIG)
-    assert np.ptp(alone.cost) < 0.03
+    assert np.ptp(alone.cost) < 0.5 * (second[1] - second[0])
 
 
 def _tube(robi_catalog):
@@ -122,11 +130,6 @@ def test_symmetric_equivalents_of_the_truth_score_alike(robi_catalog):
     assert np.all(np.abs(cost[1] - cost[0]) < 0.15 * gap), cost
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known miss: the truncated chamfer over 3 views is too flat and bumpy for LM to come "
-    "back from 10 degrees (it moves < 1 degree); refinement is off by default until it does",
-)
 def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog):
     model, T_world_obj, views = _tube(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
@@ -733,3 +736,35 @@ def test_edge_maps_see_no_edge_where_the_image_ends():
     assert np.all(view.dcdt == 255)
     with pytest.raises(ValueError, match="behind the camera"):
         edge_view(image, K, np.eye(4), np.array([0.0, 0.0, 0.0]), 0.05, config)
+
+
+def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
+    """Against scipy's bilinear interpolation and central differences, on maps whose
+    neighbouring bytes fall as often as they rise (uint8 differences must not wrap)."""
+    from scipy.ndimage import map_coordinates
+
+    from posefuse.estimator.edges import sample_maps
+
+    rng = np.random.default_rng(3)
+    maps = rng.integers(0, 256, size=(3, 12, 16), dtype=np.uint8)
+    truncate = 10.0
+    uv = rng.uniform([0.2, 0.2], [14.7, 10.7], size=(200, 2))
+    channel = rng.integers(0, 3, size=200)
+    value, grad = sample_maps(maps, channel, uv, truncate)
+    coords = np.stack([channel, uv[:, 1], uv[:, 0]]).astype(float)
+    expected = map_coordinates(maps.astype(float), coords, order=1) * truncate / 255.0
+    np.testing.assert_allclose(value, expected, atol=1e-9)
+    # the gradient: central differences within the pixel cell (away from its borders)
+    inner = np.all(np.abs(uv - np.floor(uv) - 0.5) < 0.4, axis=1)
+    h = 1e-4
+    for axis in range(2):
+        step = np.zeros(2)
+        step[axis] = h
+        up, _ = sample_maps(maps, channel, uv + step, truncate)
+        down, _ = sample_maps(maps, channel, uv - step, truncate)
+        np.testing.assert_allclose(grad[inner, axis], ((up - down) / (2 * h))[inner], atol=1e-6)
+    # one map without channels; outside it reads the truncation with no gradient
+    v2, g2 = sample_maps(maps[1], None, np.array([[3.25, 4.5], [-1.0, 2.0], [15.5, 2.0]]), truncate)
+    ref = map_coordinates(maps[1].astype(float), [[4.5], [3.25]], order=1)[0] * truncate / 255
+    np.testing.assert_allclose(v2, [ref, truncate, truncate], atol=1e-9)
+    np.testing.assert_array_equal(g2[1:], 0.0)
