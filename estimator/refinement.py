@@ -27,16 +27,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_edges, sample_maps
-from posefuse.estimator.geometry import hat, project_jacobian, rotation_angle, so3_exp, so3_log
+from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
+from posefuse.estimator.geometry import hat, rotation_angle, so3_exp, so3_log
 
 __all__ = ["RefineConfig", "Refinement", "refine_pose"]
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    # off by default: from a 10 degree error it does not converge yet (tests/test_verification)
-    enabled: bool = False
+    enabled: bool = True
     iterations: int = 8
     sigma_px: float = 1.5  # std of one edge sample's distance, RoI pixels
     huber_px: float = 2.0
@@ -45,6 +44,9 @@ class RefineConfig:
     accept_deg: float = 15.0
     accept_frac: float = 0.1  # of the diameter
     damping: float = 1e-3
+    # converged when a step turns by less than this and moves by less than this share of d
+    step_tol_deg: float = 0.05
+    step_tol_frac: float = 0.001
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,9 +71,34 @@ def _robust(d: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     return rho, w
 
 
+@dataclass(frozen=True, eq=False)
+class _ViewStack:
+    """The kept views as arrays, built once per refinement.
+
+    R_cw: (V, 3, 3), t_cw: (V, 3) T_cam_world; K: (V, 3, 3) RoI intrinsics; maps: (V * bins +
+    V, L, L) uint8, every view's directional chamfer maps, then its mask-boundary map (the
+    truncation where it has none); has_mask: (V,) bool.
+    """
+
+    R_cw: np.ndarray
+    t_cw: np.ndarray
+    K: np.ndarray
+    maps: np.ndarray
+    has_mask: np.ndarray
+
+    @classmethod
+    def of(cls, views: list[EdgeView]) -> _ViewStack:
+        T = np.array([v.T_cam_world for v in views])
+        empty = np.full(views[0].dcdt.shape[1:], 255, np.uint8)
+        masks = [v.mask_dt if v.mask_dt is not None else empty for v in views]
+        maps = np.concatenate([np.concatenate([v.dcdt for v in views]), np.stack(masks)])
+        has_mask = np.array([v.mask_dt is not None for v in views])
+        return cls(T[:, :3, :3], T[:, :3, 3], np.array([v.K_roi for v in views]), maps, has_mask)
+
+
 def _linearize(
     edges: ModelEdges,
-    views: list[EdgeView],
+    stack: _ViewStack,
     R: np.ndarray,
     t: np.ndarray,
     truncate: float,
@@ -80,56 +107,56 @@ def _linearize(
     mask_weight: float,
     config: RefineConfig,
     want_jacobian: bool = True,
-    sets: list[tuple[np.ndarray, np.ndarray]] | None = None,
-) -> tuple[float, np.ndarray, np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """The data term's cost, information H (6, 6) and gradient g (6,) at (R, t), and per view
-    the (contour, crease) samples used. Given ``sets``, those samples are used instead of the
-    ones showing at (R, t): within one step the objective then compares like with like."""
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
-    cost = 0.0
-    used = []
-    for k, view in enumerate(views):
-        R_cw, t_cw = view.T_cam_world[:3, :3], view.T_cam_world[:3, 3]
-        R_cam = (R_cw @ R)[None]
-        t_cam = (R_cw @ t + t_cw)[None]
-        if sets is None:
-            points, directions, active, contour = pose_edges(edges, R_cam, t_cam)
-            on_contour, crease = contour[0], active[0] & ~contour[0]
-        else:
-            on_contour, crease = sets[k]
-            points, directions = edges.points[None], edges.directions[None]
-        used.append((on_contour, crease))
-        uv, angle, pts_cam = project_edges(points, directions, R_cam, t_cam, view.K_roi)
-        Rp = points[0] @ R.T  # (Q, 3) the samples relative to the origin, world frame
-        terms = [(view.dcdt, on_contour, 1.0), (view.dcdt, crease, crease_weight)]
-        if view.mask_dt is not None and mask_weight > 0:
-            terms.append((view.mask_dt, on_contour, mask_weight))
-        b = np.floor(angle[0] / (np.pi / bins) + 0.5).astype(np.intp) % bins
-        for maps, use, weight in terms:
-            n = int(use.sum())
-            if n == 0:
-                continue
-            d, grad = sample_maps(maps, b if maps.ndim == 3 else None, uv[0], truncate)
-            d, grad = d[use], grad[use]
-            scale = weight * min(1.0, config.points_per_view / n) / config.sigma_px**2
-            rho, w = _robust(np.minimum(d, truncate), config.huber_px)
-            cost += scale * float(rho.sum())
-            if not want_jacobian:
-                continue
-            live = d < truncate * 0.999
-            if not live.any():
-                continue
-            J_uv = project_jacobian(pts_cam[0][use][live], view.K_roi)  # (n, 2, 3)
-            dp = np.concatenate(
-                [np.broadcast_to(R_cw, (int(live.sum()), 3, 3)), -R_cw @ hat(Rp[use][live])],
-                axis=2,
-            )  # (n, 3, 6): d p_cam / d (dt, dphi)
-            J = np.einsum("ni,nij,njk->nk", grad[live], J_uv, dp)  # (n, 6)
-            wl = w[live] * scale
-            H += np.einsum("n,ni,nj->ij", wl, J, J)
-            g += np.einsum("n,n,ni->i", wl, d[live], J)
-    return cost, H, g, used
+    sets: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[float, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The data term's cost, information H (6, 6) and gradient g (6,) at (R, t), and the
+    samples used: (contour, crease), each (V, P) bool. Given ``sets``, those samples are used
+    instead of the ones showing at (R, t): within one step the objective then compares like
+    with like. All views' samples are read in one call."""
+    V = len(stack.R_cw)
+    R_cam = stack.R_cw @ R  # (V, 3, 3)
+    t_cam = stack.R_cw @ t + stack.t_cw  # (V, 3)
+    if sets is None:
+        _, _, active, contour = pose_edges(edges, R_cam, t_cam)
+        sets = (contour, active & ~contour)
+    on_contour, crease = sets
+    view, sample, uv, angle = project_shown(edges, on_contour | crease, R_cam, t_cam, stack.K)
+    b = np.floor(angle / (np.pi / bins) + 0.5).astype(np.intp) % bins
+    is_contour = on_contour[view, sample]
+    # reads: the contour's and the creases' directional chamfer, the contour's mask distance
+    masked = np.flatnonzero(is_contour & stack.has_mask[view]) if mask_weight > 0 else []
+    read = np.concatenate([np.arange(len(view)), masked]).astype(np.intp)
+    term = np.concatenate([np.where(is_contour, 0, 1), np.full(len(masked), 2)])
+    channel = np.concatenate([view * bins + b, V * bins + view[masked]])
+    d, grad = sample_maps(stack.maps, channel, uv[read], truncate)
+    group = view[read] * 3 + term  # (view, term) of each read
+    n = np.bincount(group, minlength=3 * V)
+    term_weight = np.array([1.0, crease_weight, mask_weight])[term]
+    scale = term_weight * np.minimum(1.0, config.points_per_view / n[group]) / config.sigma_px**2
+    rho, w = _robust(np.minimum(d, truncate), config.huber_px)
+    cost = float(np.sum(scale * rho))
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    live = np.flatnonzero(d < truncate * 0.999)
+    if not want_jacobian or len(live) == 0:
+        return cost, H, g, sets
+    v_l, s_l = view[read[live]], sample[read[live]]
+    p_obj = edges.points[s_l]
+    pts_cam = np.einsum("nij,nj->ni", R_cam[v_l], p_obj) + t_cam[v_l]  # (n, 3)
+    x, y, z = pts_cam[:, 0], pts_cam[:, 1], pts_cam[:, 2]
+    d_proj = np.zeros((len(live), 2, 3))  # d (x/z, y/z) / d p_cam
+    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
+    d_proj[:, 0, 2] = -x / z**2
+    d_proj[:, 1, 2] = -y / z**2
+    J_uv = stack.K[v_l, :2, :2] @ d_proj  # (n, 2, 3) pixels per metre
+    grad_p = np.einsum("ni,nij->nj", grad[live], J_uv)  # (n, 3) d distance / d p_cam
+    R_cw = stack.R_cw[v_l]
+    # d p_cam / d (dt, dphi) = [R_cw, -R_cw hat(R p)]: (n, 3, 6)
+    dp = np.concatenate([R_cw, -R_cw @ hat(p_obj @ R.T)], axis=2)
+    J = np.einsum("nj,njk->nk", grad_p, dp)  # (n, 6)
+    wl = w[live] * scale[live]
+    H = np.einsum("n,ni,nj->ij", wl, J, J)
+    g = np.einsum("n,n,ni->i", wl, d[live], J)
+    return cost, H, g, sets
 
 
 def refine_pose(
@@ -145,6 +172,8 @@ def refine_pose(
     crease_weight: float,
     mask_weight: float,
     config: RefineConfig,
+    R_init: np.ndarray | None = None,
+    t_init: np.ndarray | None = None,
 ) -> Refinement:
     """Levenberg-Marquardt on the chamfer over all views, with the priors of the module
     docstring.
@@ -154,16 +183,30 @@ def refine_pose(
         cov_R_prior: (3, 3) rad^2 (left perturbation, world frame), floored at
         ``rotation_floor_deg``; truncate_px, bins, crease_weight, mask_weight: as the views
         were built and are scored (:class:`estimator.edges.EdgeConfig`,
-        :class:`estimator.verification.VerificationConfig`).
+        :class:`estimator.verification.VerificationConfig`); R_init (3, 3), t_init (3,): where
+        to start instead of the start (the priors stay at R_start and t_prior), taken only where
+        it costs less than the start.
     """
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))
     info_R = V @ np.diag(1.0 / np.maximum(w_eig, floor)) @ V.T
     info_t = np.linalg.inv(cov_t_prior)
 
-    def objective(R, t, sets=None):
+    stack = _ViewStack.of(views)
+
+    def objective(R, t, sets=None, want_jacobian=True):
         cost, H, g, used = _linearize(
-            edges, views, R, t, truncate_px, bins, crease_weight, mask_weight, config, True, sets
+            edges,
+            stack,
+            R,
+            t,
+            truncate_px,
+            bins,
+            crease_weight,
+            mask_weight,
+            config,
+            want_jacobian,
+            sets,
         )
         r_t = t - t_prior
         r_R = so3_log(R @ R_start.T)
@@ -177,6 +220,16 @@ def refine_pose(
     R, t = R_start.copy(), np.asarray(t_start, float).copy()
     cost, H, g, sets = objective(R, t)
     cost_start = cost
+    if R_init is not None and t_init is not None:
+        # a warm start (the last result of the same hypothesis), taken where it costs less
+        warm = objective(np.asarray(R_init, float), np.asarray(t_init, float))
+        if warm[0] < cost_start:
+            R, t = np.asarray(R_init, float), np.asarray(t_init, float)
+            cost, H, g, sets = warm
+    step_tol_rad, step_tol_m = (
+        np.deg2rad(config.step_tol_deg),
+        config.step_tol_frac * edges.diameter,
+    )
     lam = config.damping
     it = 0  # the iterations run, reported in the result
     for it in range(1, config.iterations + 1):  # noqa: B007 (read after the loop)
@@ -184,12 +237,12 @@ def refine_pose(
         delta = -np.linalg.solve(A, g)
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]
         # the step is judged on the samples it was computed from, then the set is renewed
-        cost_same, *_ = objective(R_new, t_new, sets)
+        cost_same, *_ = objective(R_new, t_new, sets, want_jacobian=False)
         if cost_same < cost:
             R, t = R_new, t_new
             cost, H, g, sets = objective(R, t)
             lam = max(lam / 3, 1e-7)
-            if np.linalg.norm(delta[3:]) < 1e-5 and np.linalg.norm(delta[:3]) < 1e-6:
+            if np.linalg.norm(delta[3:]) < step_tol_rad and np.linalg.norm(delta[:3]) < step_tol_m:
                 break
         else:
             lam *= 5

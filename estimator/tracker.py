@@ -42,6 +42,7 @@ from posefuse.estimator.founding import (
     triangulate_pair,
 )
 from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.geometry import rotation_angle
 from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
 from posefuse.estimator.mixture import MixtureConfig, RotationMixture
 from posefuse.estimator.objects import Catalog
@@ -584,11 +585,22 @@ class MultiViewEstimator:
             track.scores,
         )
         track.verdict = verdict
-        track.refined = None
-        if verdict is None or not self.config.refinement.enabled:
+        previous, track.refined = track.refined, None
+        rcfg = self.config.refinement
+        if verdict is None or not rcfg.enabled:
             return
         lead = mixture.components[int(verdict.component[verdict.best])]
         R_start = verdict.R_world_obj[verdict.best]
+        # the last refined pose, where it lies in the basin of today's start, is a warm start
+        R_init = t_init = None
+        if (
+            previous is not None
+            and previous.accepted
+            and rotation_angle(previous.R_world_obj @ R_start.T) <= np.deg2rad(rcfg.accept_deg)
+            and np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
+            <= rcfg.accept_frac * edges.diameter
+        ):
+            R_init, t_init = previous.R_world_obj, previous.t_world_obj
         # the component's covariance, turned with its variant (a turn in the object frame
         # leaves a world-frame left perturbation as it is)
         track.refined = refine_pose(
@@ -603,7 +615,9 @@ class MultiViewEstimator:
             vcfg.edges.bins,
             vcfg.crease_weight,
             vcfg.mask_weight,
-            self.config.refinement,
+            rcfg,
+            R_init,
+            t_init,
         )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:

@@ -89,7 +89,8 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     # silhouette's size differs, by the 2% that the head's distance changes (a third of a RoI
     # pixel), less than half the second view's gap
     chamfer_only = replace(CONFIG, mask_weight=0.0)
-    edges_first = score_hypotheses(edges, views[:1], np.array([truth, flipped]), center, chamfer_only)
+    both = np.array([truth, flipped])
+    edges_first = score_hypotheses(edges, views[:1], both, center, chamfer_only)
     assert abs(edges_first[1, 0] - edges_first[0, 0]) < 0.01, edges_first
     assert abs(first[1] - first[0]) < min(0.1, 0.5 * (second[1] - second[0])), cost
     # verify, given the flip as the only component, puts the truth (its variant) first
@@ -233,7 +234,7 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
     dataset = load_dataset(small_dataset_root)
     few = TrackerConfig(verification=dataclasses.replace(VerificationConfig(), max_views=2))
     estimator = _run_scene(dataset, dataset.scene_ids[0], few, default_banks)
-    verified = 0
+    verified = refined_count = 0
     for track in estimator.tracks.values():
         assert len(track.edge_views) <= 2
         assert sum(v.nbytes for v in track.edge_views) <= 2 * 9 * 96 * 96
@@ -242,9 +243,18 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
         verified += 1
         estimate = next(e for e in estimator.estimates() if e.object_id == track.object_id)
         lead = track.verdict.R_world_obj[track.verdict.best]
-        assert np.allclose(estimate.T_world_obj[:3, :3], lead, atol=1e-9)
+        refined = track.refined
+        if refined is not None and refined.accepted:
+            # the refined pose is published, with the refinement's covariance
+            refined_count += 1
+            assert np.allclose(estimate.T_world_obj[:3, :3], refined.R_world_obj, atol=1e-9)
+            assert np.allclose(estimate.T_world_obj[:3, 3], refined.t_world_obj, atol=1e-12)
+            assert np.allclose(estimate.cov, refined.cov)
+            assert rotation_angle(refined.R_world_obj @ lead.T) <= np.deg2rad(15.0) + 1e-9
+        else:
+            assert np.allclose(estimate.T_world_obj[:3, :3], lead, atol=1e-9)
         assert np.isclose(sum(h.weight for h in estimate.hypotheses), 1.0)
-    assert verified > 0
+    assert verified > 0 and refined_count > 0
     # switched off, nothing is kept and the mixture's lead is published as before
     off = TrackerConfig(verification=dataclasses.replace(VerificationConfig(), enabled=False))
     estimator = _run_scene(dataset, dataset.scene_ids[0], off, default_banks)
