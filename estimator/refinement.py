@@ -47,6 +47,7 @@ class RefineConfig:
     # converged when a step turns by less than this and moves by less than this share of d
     step_tol_deg: float = 0.05
     step_tol_frac: float = 0.001
+    cost_tol: float = 0.002  # or when a step lowers the cost by less than this fraction
 
 
 @dataclass(frozen=True, eq=False)
@@ -231,22 +232,30 @@ def refine_pose(
         config.step_tol_frac * edges.diameter,
     )
     lam = config.damping
+    rejected = 0
     it = 0  # the iterations run, reported in the result
     for it in range(1, config.iterations + 1):  # noqa: B007 (read after the loop)
         A = H + lam * np.diag(np.diag(H))
         delta = -np.linalg.solve(A, g)
+        small = np.linalg.norm(delta[3:]) < step_tol_rad and np.linalg.norm(delta[:3]) < step_tol_m
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]
         # the step is judged on the samples it was computed from, then the set is renewed
         cost_same, *_ = objective(R_new, t_new, sets, want_jacobian=False)
         if cost_same < cost:
+            before = cost
             R, t = R_new, t_new
             cost, H, g, sets = objective(R, t)
             lam = max(lam / 3, 1e-7)
-            if np.linalg.norm(delta[3:]) < step_tol_rad and np.linalg.norm(delta[:3]) < step_tol_m:
+            rejected = 0
+            # converged: the step was below the tolerance, or lowered the cost by a fraction
+            # the samples' renewal outweighs
+            if small or before - cost < config.cost_tol * before:
                 break
         else:
             lam *= 5
-            if lam > 1e4:
+            rejected += 1
+            # the damped step no longer moves, or two in a row found no lower cost
+            if small or rejected >= 2:
                 break
     U, _, Vt = np.linalg.svd(R)
     R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt

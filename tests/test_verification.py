@@ -778,3 +778,95 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
     ref = map_coordinates(maps[1].astype(float), [[4.5], [3.25]], order=1)[0] * truncate / 255
     np.testing.assert_allclose(v2, [ref, truncate, truncate], atol=1e-9)
     np.testing.assert_array_equal(g2[1:], 0.0)
+
+
+def _smooth_views(rng, n_views: int, bins: int, with_mask: list[bool]):
+    """EdgeViews of smooth synthetic distance fields (every orientation bin alike, so that a
+    sample's bin does not matter), cameras 0.4-0.6 m from the origin looking at it."""
+    from posefuse.estimator.edges import EdgeView
+
+    L = 96
+    v, u = np.mgrid[0:L, 0:L].astype(float)
+    views = []
+    for k in range(n_views):
+        a, b, c = rng.uniform(5.0, 14.0, size=3)
+        field = 5.0 + 4.0 * np.sin(u / a + c) * np.cos(v / b)  # pixels, within (0, 10)
+        maps = np.round(field / 10.0 * 255).astype(np.uint8)
+        mask = np.round((5.0 + 4.0 * np.cos(u / b - v / a)) / 10.0 * 255).astype(np.uint8)
+        eye = rng.normal(size=3)
+        eye *= rng.uniform(0.4, 0.6) / np.linalg.norm(eye)
+        T_world_cam = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+        K = np.array([[300.0, 0.0, 47.5], [0.0, 300.0, 47.5], [0.0, 0.0, 1.0]])
+        views.append(
+            EdgeView(
+                invert(T_world_cam),
+                K,
+                np.repeat(maps[None], bins, axis=0),
+                mask if with_mask[k] else None,
+                k,
+            )
+        )
+    return views
+
+
+def test_refinement_gradient_is_the_cost_derivative_by_central_differences():
+    """The analytic gradient of the robust chamfer (chain rule through the map's bilinear
+    gradient, the pinhole and the pose perturbation t + dt, exp(dphi) R) against central
+    differences of the cost, all terms on: contour, creases at half weight, a mask in two of
+    three views, samples both inside and past the Huber bound."""
+    from posefuse.estimator.edges import ModelEdges
+    from posefuse.estimator.refinement import _linearize, _ViewStack
+
+    rng = np.random.default_rng(11)
+    P, bins = 60, 8
+    points = rng.uniform(-0.03, 0.03, size=(P, 3))
+    directions = rng.normal(size=(P, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    edges = ModelEdges(points, directions, np.zeros((P, 2, 3)), np.zeros(P, bool), 0.08)
+    views = _smooth_views(rng, 3, bins, [True, False, True])
+    stack = _ViewStack.of(views)
+    contour = np.zeros((3, P), bool)
+    contour[:, : P // 2] = True
+    crease = ~contour
+    config = RefineConfig(huber_px=1.5, points_per_view=20.0)
+    args = (10.0, bins, 0.5, 1.5, config)
+    for _ in range(3):
+        R = so3_exp(rng.normal(size=3))
+        t = rng.normal(size=3) * 0.005
+        cost, H, g, _ = _linearize(edges, stack, R, t, *args, True, (contour, crease))
+        d, *_ = _linearize(edges, stack, R, t, *args, False, (contour, crease))
+        assert d == cost and cost > 0
+        numeric = np.zeros(6)
+        for i in range(6):
+            step = np.zeros(6)
+            step[i] = 1e-8  # well below a pixel cell: no sample crosses a bilinear kink
+            up, *_ = _linearize(
+                edges, stack, so3_exp(step[3:]) @ R, t + step[:3], *args, False, (contour, crease)
+            )
+            down, *_ = _linearize(
+                edges, stack, so3_exp(-step[3:]) @ R, t - step[:3], *args, False, (contour, crease)
+            )
+            numeric[i] = (up - down) / 2e-8
+        # d cost = 2 g (cost is a sum of squared-like terms, g = J^T W r)
+        np.testing.assert_allclose(2 * g, numeric, rtol=1e-4, atol=1e-5 * np.abs(numeric).max())
+        # the information is symmetric positive semi-definite
+        np.testing.assert_allclose(H, H.T, atol=1e-9 * np.abs(H).max())
+        assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
+        # each view counts at most points_per_view samples' worth: every sample twice (30 + 30
+        # per term, past the cap of 20) changes nothing, every view twice doubles it all
+        twice = ModelEdges(
+            np.concatenate([points, points]),
+            np.concatenate([directions, directions]),
+            np.zeros((2 * P, 2, 3)),
+            np.zeros(2 * P, bool),
+            0.08,
+        )
+        sets2 = (np.concatenate([contour, contour], 1), np.concatenate([crease, crease], 1))
+        c2, H2, g2, _ = _linearize(twice, stack, R, t, *args, True, sets2)
+        np.testing.assert_allclose([c2, *g2, *H2.ravel()], [cost, *g, *H.ravel()], rtol=1e-9)
+        doubled = _ViewStack.of(views + views)
+        sets_v = (np.concatenate([contour, contour]), np.concatenate([crease, crease]))
+        c3, H3, g3, _ = _linearize(edges, doubled, R, t, *args, True, sets_v)
+        np.testing.assert_allclose(
+            [c3, *g3, *H3.ravel()], [2 * cost, *2 * g, *2 * H.ravel()], rtol=1e-9
+        )
