@@ -8,8 +8,9 @@ detections (the oracle front end: the true centers with 2 px of noise and the vi
 seed 0) and scores the same LINE-2D features:
 
 - ours: the two-step estimator (translation, then rotation from the scale-aware re-crop, then
-  the rotation hypotheses verified in every view of the track);
-- ours without verification: the ablation, each view's LINE-2D match judged alone;
+  the rotation hypotheses verified in every view of the track, the winner refined over them);
+- ours without verification and refinement: the ablation, each view's LINE-2D match judged
+  alone;
 - simultaneous: our translation, rotation from templates at 9 distances without re-crop;
 - CosyPose-RGB and CosyPose-RGBD: per-view 6D poses fused across views (bench/baselines.py).
 
@@ -69,7 +70,7 @@ METHODS = ("cosypose_rgb", "cosypose_rgbd", "ours_no_verification", "ours", "sim
 LABELS = {
     "cosypose_rgb": "CosyPose-style RGB",
     "cosypose_rgbd": "CosyPose-style RGBD",
-    "ours_no_verification": "ours without verification (ablation)",
+    "ours_no_verification": "ours without verification and refinement (ablation)",
     "ours": "ours (two-step)",
     "simultaneous": "simultaneous (multi-scale)",
 }

@@ -117,7 +117,7 @@ def test_bench_quick_writes_both_tables_with_every_method(tmp_path, default_bank
     assert ours["8"] >= 0.75 and ours["4"] >= 0.35, ours
     assert ours["8"] >= ours["4"]  # more views, no worse
     assert ours["8"] > scores["cosypose_rgb"]["rates"]["8"]["all"] + 0.2, scores
-    assert "ours without verification (ablation)" in text.split("## Table II")[0]
+    assert "ours without verification and refinement (ablation)" in text.split("## Table II")[0]
     # the "all" rows carry numbers for every method, not placeholders
     table1 = text.split("## Table I")[1].split("## Table II")[0]
     all_row = next(line for line in table1.splitlines() if line.startswith("| **all**"))
