@@ -47,7 +47,7 @@ DEFAULT_TESTS = {
     "symmetry": ["tests/test_symmetry.py"],
     "verification": ["tests/test_verification.py"],
     "edges": ["tests/test_verification.py"],
-    "refinement": ["tests/test_verification.py"],
+    "refinement": ["tests/test_refinement.py"],
 }
 # what the tests read besides the package: copied next to tests/ as in the checkout
 DATA_DIRS = ("catalogs", "models", "recordings")

@@ -16,7 +16,6 @@ from posefuse.estimator.edges import edge_view, model_edges, pose_edges
 from posefuse.estimator.geometry import invert, make_transform, rotation_angle, so3_exp
 from posefuse.estimator.mixture import closest_equivalent
 from posefuse.estimator.nbv import look_at
-from posefuse.estimator.refinement import RefineConfig, refine_pose
 from posefuse.estimator.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Renderer
 from posefuse.estimator.verification import (
     ScoreCache,
@@ -129,42 +128,6 @@ def test_symmetric_equivalents_of_the_truth_score_alike(robi_catalog):
     # the symmetric equivalent costs what the truth costs, up to a small share of that gap (the
     # catalog's symmetries hold to 2.5% of the diameter, not exactly)
     assert np.all(np.abs(cost[1] - cost[0]) < 0.15 * gap), cost
-
-
-def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog):
-    model, T_world_obj, views = _tube(robi_catalog)
-    R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    edges = _edges(model)
-    discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
-    rng = np.random.default_rng(7)
-    for _ in range(3):
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        shift = rng.normal(size=3)
-        shift *= 0.05 * model.diameter / np.linalg.norm(shift)
-        R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
-        t0 = t_true + shift
-        out = refine_pose(
-            edges,
-            views,
-            R0,
-            t0,
-            t0,  # the prior sits where the start is: it does not know the truth
-            np.eye(3) * (0.1 * model.diameter) ** 2,
-            np.eye(3) * np.deg2rad(20.0) ** 2,
-            CONFIG.edges.truncate_px,
-            CONFIG.edges.bins,
-            CONFIG.crease_weight,
-            CONFIG.mask_weight,
-            RefineConfig(iterations=20),
-        )
-        assert out.accepted and out.cost < out.cost_start
-        _, angle = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
-        assert np.rad2deg(angle) < 2.0
-        assert np.linalg.norm(out.t_world_obj - t_true) < 0.02 * model.diameter
-        # the covariance is a proper one, and tighter than the priors
-        assert np.all(np.linalg.eigvalsh(out.cov) > 0)
-        assert np.trace(out.cov[3:, 3:]) < 3 * np.deg2rad(20.0) ** 2
 
 
 def test_near_symmetries_are_turns_the_catalog_does_not_call_symmetries(robi_catalog):
@@ -778,95 +741,3 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
     ref = map_coordinates(maps[1].astype(float), [[4.5], [3.25]], order=1)[0] * truncate / 255
     np.testing.assert_allclose(v2, [ref, truncate, truncate], atol=1e-9)
     np.testing.assert_array_equal(g2[1:], 0.0)
-
-
-def _smooth_views(rng, n_views: int, bins: int, with_mask: list[bool]):
-    """EdgeViews of smooth synthetic distance fields (every orientation bin alike, so that a
-    sample's bin does not matter), cameras 0.4-0.6 m from the origin looking at it."""
-    from posefuse.estimator.edges import EdgeView
-
-    L = 96
-    v, u = np.mgrid[0:L, 0:L].astype(float)
-    views = []
-    for k in range(n_views):
-        a, b, c = rng.uniform(5.0, 14.0, size=3)
-        field = 5.0 + 4.0 * np.sin(u / a + c) * np.cos(v / b)  # pixels, within (0, 10)
-        maps = np.round(field / 10.0 * 255).astype(np.uint8)
-        mask = np.round((5.0 + 4.0 * np.cos(u / b - v / a)) / 10.0 * 255).astype(np.uint8)
-        eye = rng.normal(size=3)
-        eye *= rng.uniform(0.4, 0.6) / np.linalg.norm(eye)
-        T_world_cam = look_at(eye, np.zeros(3), np.array([0.0, 0.0, 1.0]))
-        K = np.array([[300.0, 0.0, 47.5], [0.0, 300.0, 47.5], [0.0, 0.0, 1.0]])
-        views.append(
-            EdgeView(
-                invert(T_world_cam),
-                K,
-                np.repeat(maps[None], bins, axis=0),
-                mask if with_mask[k] else None,
-                k,
-            )
-        )
-    return views
-
-
-def test_refinement_gradient_is_the_cost_derivative_by_central_differences():
-    """The analytic gradient of the robust chamfer (chain rule through the map's bilinear
-    gradient, the pinhole and the pose perturbation t + dt, exp(dphi) R) against central
-    differences of the cost, all terms on: contour, creases at half weight, a mask in two of
-    three views, samples both inside and past the Huber bound."""
-    from posefuse.estimator.edges import ModelEdges
-    from posefuse.estimator.refinement import _linearize, _ViewStack
-
-    rng = np.random.default_rng(11)
-    P, bins = 60, 8
-    points = rng.uniform(-0.03, 0.03, size=(P, 3))
-    directions = rng.normal(size=(P, 3))
-    directions /= np.linalg.norm(directions, axis=1)[:, None]
-    edges = ModelEdges(points, directions, np.zeros((P, 2, 3)), np.zeros(P, bool), 0.08)
-    views = _smooth_views(rng, 3, bins, [True, False, True])
-    stack = _ViewStack.of(views)
-    contour = np.zeros((3, P), bool)
-    contour[:, : P // 2] = True
-    crease = ~contour
-    config = RefineConfig(huber_px=1.5, points_per_view=20.0)
-    args = (10.0, bins, 0.5, 1.5, config)
-    for _ in range(3):
-        R = so3_exp(rng.normal(size=3))
-        t = rng.normal(size=3) * 0.005
-        cost, H, g, _ = _linearize(edges, stack, R, t, *args, True, (contour, crease))
-        d, *_ = _linearize(edges, stack, R, t, *args, False, (contour, crease))
-        assert d == cost and cost > 0
-        numeric = np.zeros(6)
-        for i in range(6):
-            step = np.zeros(6)
-            step[i] = 1e-8  # well below a pixel cell: no sample crosses a bilinear kink
-            up, *_ = _linearize(
-                edges, stack, so3_exp(step[3:]) @ R, t + step[:3], *args, False, (contour, crease)
-            )
-            down, *_ = _linearize(
-                edges, stack, so3_exp(-step[3:]) @ R, t - step[:3], *args, False, (contour, crease)
-            )
-            numeric[i] = (up - down) / 2e-8
-        # d cost = 2 g (cost is a sum of squared-like terms, g = J^T W r)
-        np.testing.assert_allclose(2 * g, numeric, rtol=1e-4, atol=1e-5 * np.abs(numeric).max())
-        # the information is symmetric positive semi-definite
-        np.testing.assert_allclose(H, H.T, atol=1e-9 * np.abs(H).max())
-        assert np.linalg.eigvalsh(H).min() > -1e-9 * np.abs(H).max()
-        # each view counts at most points_per_view samples' worth: every sample twice (30 + 30
-        # per term, past the cap of 20) changes nothing, every view twice doubles it all
-        twice = ModelEdges(
-            np.concatenate([points, points]),
-            np.concatenate([directions, directions]),
-            np.zeros((2 * P, 2, 3)),
-            np.zeros(2 * P, bool),
-            0.08,
-        )
-        sets2 = (np.concatenate([contour, contour], 1), np.concatenate([crease, crease], 1))
-        c2, H2, g2, _ = _linearize(twice, stack, R, t, *args, True, sets2)
-        np.testing.assert_allclose([c2, *g2, *H2.ravel()], [cost, *g, *H.ravel()], rtol=1e-9)
-        doubled = _ViewStack.of(views + views)
-        sets_v = (np.concatenate([contour, contour]), np.concatenate([crease, crease]))
-        c3, H3, g3, _ = _linearize(edges, doubled, R, t, *args, True, sets_v)
-        np.testing.assert_allclose(
-            [c3, *g3, *H3.ravel()], [2 * cost, *2 * g, *2 * H.ravel()], rtol=1e-9
-        )
