@@ -13,11 +13,20 @@ from posefuse.estimator.mixture import closest_equivalent
 from posefuse.estimator.nbv import look_at
 from posefuse.estimator.refinement import RefineConfig, _linearize, _ViewStack, refine_pose
 
+_TUBE: dict = {}
+
+
+def _tube_once(robi_catalog):
+    """_tube's render and the model's edges, made once per process (they never change)."""
+    if not _TUBE:
+        model, T_world_obj, views = _tube(robi_catalog)
+        _TUBE.update(model=model, T=T_world_obj, views=views, edges=_edges(model))
+    return _TUBE["model"], _TUBE["T"], _TUBE["views"], _TUBE["edges"]
+
 
 def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog):
-    model, T_world_obj, views = _tube(robi_catalog)
+    model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    edges = _edges(model)
     discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
     rng = np.random.default_rng(7)
     for _ in range(3):
@@ -142,13 +151,13 @@ def test_refinement_gradient_is_the_cost_derivative_by_central_differences():
 def _tube_refinement(robi_catalog, config, degrees=6.0, **kwargs):
     """The tube fitting in three views, started ``degrees`` off about a fixed axis and 0.02 d
     off, with priors at the start; (model, truth (R, t), start (R, t), result)."""
-    model, T_world_obj, views = _tube(robi_catalog)
+    model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
     axis = np.array([0.6, -0.48, 0.64])
     R0 = so3_exp(np.deg2rad(degrees) * axis) @ R_true
     t0 = t_true + 0.02 * model.diameter * np.array([0.0, 0.6, 0.8])
     out = refine_pose(
-        _edges(model),
+        edges,
         views,
         R0,
         t0,
