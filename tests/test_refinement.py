@@ -219,3 +219,75 @@ def test_a_warm_start_ends_where_a_cold_one_does_in_fewer_steps_and_a_bad_one_is
     *_, ignored = _tube_refinement(robi_catalog, RefineConfig(), R_init=bad, t_init=t_true)
     np.testing.assert_allclose(ignored.R_world_obj, cold.R_world_obj, atol=1e-12)
     assert ignored.iterations == cold.iterations and ignored.cost == cold.cost
+
+
+def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
+    """The data term against a plain reference: each view's contour samples read from its
+    directional map and (with a mask) its mask map, its crease samples from the directional
+    map, each term's Huber cost scaled by its weight, by 1 / sigma^2, and by the per-view cap
+    on samples; read with scipy's bilinear interpolation. Samples at the truncation count
+    fully in the cost."""
+    from scipy.ndimage import map_coordinates
+
+    from posefuse.estimator.edges import pose_edges
+
+    rng = np.random.default_rng(5)
+    P, bins, truncate = 50, 8, 10.0
+    points = rng.uniform(-0.03, 0.03, size=(P, 3))
+    directions = rng.normal(size=(P, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    edges = ModelEdges(points, directions, np.zeros((P, 2, 3)), np.zeros(P, bool), 0.08)
+    views = _smooth_views(rng, 3, bins, [True, False, True])
+    # one view sees half its samples past the truncation: its map is flat at the truncation
+    views[1].dcdt[:, :, 48:] = 255
+    stack = _ViewStack.of(views)
+    contour = rng.random((3, P)) < 0.6
+    crease = ~contour & (rng.random((3, P)) < 0.7)
+    for sigma, huber, cap, crease_w, mask_w in [
+        (1.5, 2.0, 40.0, 0.5, 1.5),
+        (1.0, 1.0, 10.0, 0.25, 0.0),
+        (2.5, 3.0, 1000.0, 1.0, 3.0),
+    ]:
+        config = RefineConfig(sigma_px=sigma, huber_px=huber, points_per_view=cap)
+        R = so3_exp(rng.normal(size=3))
+        t = rng.normal(size=3) * 0.005
+        cost, *_ = _linearize(
+            edges, stack, R, t, truncate, bins, crease_w, mask_w, config, False, (contour, crease)
+        )
+        expected = 0.0
+        for k, view in enumerate(views):
+            R_cw, t_cw = view.T_cam_world[:3, :3], view.T_cam_world[:3, 3]
+            p = points @ (R_cw @ R).T + (R_cw @ t + t_cw)
+            uv = p[:, :2] / p[:, 2:3] @ view.K_roi[:2, :2].T + view.K_roi[:2, 2]
+
+            def read(image, uv=uv):
+                return map_coordinates(image.astype(float), [uv[:, 1], uv[:, 0]], order=1) * (
+                    truncate / 255.0
+                )
+
+            d_dir = read(view.dcdt[0])  # every bin alike
+            terms = [(d_dir[contour[k]], 1.0), (d_dir[crease[k]], crease_w)]
+            if view.mask_dt is not None and mask_w > 0:
+                terms.append((read(view.mask_dt)[contour[k]], mask_w))
+            for d, weight in terms:
+                if len(d) == 0:
+                    continue
+                rho = np.where(d <= huber, d * d, 2 * huber * d - huber * huber)
+                expected += weight * min(1.0, cap / len(d)) / sigma**2 * rho.sum()
+        np.testing.assert_allclose(cost, expected, rtol=1e-9)
+    # without given sets, the samples are those pose_edges shows at the pose: contour, and
+    # active but not contour as creases
+    normals = rng.normal(size=(P, 2, 3))
+    normals /= np.linalg.norm(normals, axis=2)[..., None]
+    crease_flag = rng.random(P) < 0.5
+    real = ModelEdges(points, directions, normals, crease_flag, 0.08)
+    config = RefineConfig()
+    R, t = so3_exp(rng.normal(size=3)), np.zeros(3)
+    cost, H, g, (c_used, k_used) = _linearize(real, stack, R, t, truncate, bins, 0.5, 1.5, config)
+    _, _, active, shown_contour = pose_edges(real, stack.R_cw @ R, stack.R_cw @ t + stack.t_cw)
+    np.testing.assert_array_equal(c_used, shown_contour)
+    np.testing.assert_array_equal(k_used, active & ~shown_contour)
+    assert k_used.any() and c_used.any()
+    again = _linearize(real, stack, R, t, truncate, bins, 0.5, 1.5, config, True, (c_used, k_used))
+    assert again[0] == cost
+    np.testing.assert_array_equal(again[1], H)
