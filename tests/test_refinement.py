@@ -238,6 +238,9 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
     directions /= np.linalg.norm(directions, axis=1)[:, None]
     edges = ModelEdges(points, directions, np.zeros((P, 2, 3)), np.zeros(P, bool), 0.08)
     views = _smooth_views(rng, 3, bins, [True, False, True])
+    for view in views:  # every orientation bin its own map: the bin read must be the right one
+        for b in range(bins):
+            view.dcdt[b] = np.roll(view.dcdt[b], 7 * b, axis=1)
     # one view sees half its samples past the truncation: its map is flat at the truncation
     views[1].dcdt[:, :, 48:] = 255
     stack = _ViewStack.of(views)
@@ -247,13 +250,15 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
         (1.5, 2.0, 40.0, 0.5, 1.5),
         (1.0, 1.0, 10.0, 0.25, 0.0),
         (2.5, 3.0, 1000.0, 1.0, 3.0),
+        (1.5, 2.0, 25.0, 0.5, 0.75),
     ]:
         config = RefineConfig(sigma_px=sigma, huber_px=huber, points_per_view=cap)
         R = so3_exp(rng.normal(size=3))
         t = rng.normal(size=3) * 0.005
-        cost, *_ = _linearize(
+        cost, H0, g0, _ = _linearize(
             edges, stack, R, t, truncate, bins, crease_w, mask_w, config, False, (contour, crease)
         )
+        assert not H0.any() and not g0.any()  # asked for the cost alone
         expected = 0.0
         for k, view in enumerate(views):
             R_cw, t_cw = view.T_cam_world[:3, :3], view.T_cam_world[:3, 3]
@@ -265,7 +270,12 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
                     truncate / 255.0
                 )
 
-            d_dir = read(view.dcdt[0])  # every bin alike
+            # the projected edge direction's bin, nearest of ``bins`` over [0, pi)
+            q = directions @ (R_cw @ R).T
+            duv = (q[:, :2] - p[:, :2] / p[:, 2:3] * q[:, 2:3]) / p[:, 2:3] @ view.K_roi[:2, :2].T
+            angle = np.mod(np.arctan2(duv[:, 1], duv[:, 0]), np.pi)
+            nearest = np.round(angle / (np.pi / bins)).astype(int) % bins
+            d_dir = np.array([read(view.dcdt[b])[i] for i, b in enumerate(nearest)])
             terms = [(d_dir[contour[k]], 1.0), (d_dir[crease[k]], crease_w)]
             if view.mask_dt is not None and mask_w > 0:
                 terms.append((read(view.mask_dt)[contour[k]], mask_w))
@@ -291,3 +301,50 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
     again = _linearize(real, stack, R, t, truncate, bins, 0.5, 1.5, config, True, (c_used, k_used))
     assert again[0] == cost
     np.testing.assert_array_equal(again[1], H)
+
+
+def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance():
+    """Views whose maps are all at the truncation say nothing: the refinement moves the
+    translation onto its prior's mean, keeps the rotation at the start (its prior's mean), and
+    its covariance is the priors', the rotation's floored at ``rotation_floor_deg``. One view
+    is enough to run."""
+    rng = np.random.default_rng(2)
+    P = 40
+    points = rng.uniform(-0.03, 0.03, size=(P, 3))
+    directions = rng.normal(size=(P, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    normals = rng.normal(size=(P, 2, 3))
+    normals /= np.linalg.norm(normals, axis=2)[..., None]
+    edges = ModelEdges(points, directions, normals, np.ones(P, bool), 0.08)
+    blind = []
+    for view in _smooth_views(rng, 1, 8, [True]):
+        blind.append(
+            EdgeView(
+                view.T_cam_world,
+                view.K_roi,
+                np.full_like(view.dcdt, 255),
+                np.full_like(view.mask_dt, 255),
+                0,
+            )
+        )
+    R0 = so3_exp(np.array([0.2, -0.4, 0.3]))
+    t_prior = np.array([0.01, 0.0, -0.02])
+    t0 = t_prior + np.array([0.003, -0.002, 0.001])  # 0.05 d off the prior's mean
+    cov_t = np.diag([1e-4, 4e-4, 9e-4])
+    V = so3_exp(np.array([0.3, 0.1, -0.2]))
+    cov_R = V @ np.diag(np.deg2rad([1.0, 10.0, 20.0]) ** 2) @ V.T  # 1 degree: below the floor
+    out = refine_pose(
+        edges, blind, R0, t0, t_prior, cov_t, cov_R, 10.0, 8, 0.5, 1.5, RefineConfig()
+    )
+    assert out.accepted and out.cost < out.cost_start
+    # within 1% of the way (the damping and the 0.2% cost tolerance stop it just short)
+    np.testing.assert_allclose(out.t_world_obj, t_prior, atol=0.01 * np.linalg.norm(t0 - t_prior))
+    np.testing.assert_allclose(out.R_world_obj, R0, atol=1e-12)
+    expected = np.zeros((6, 6))
+    expected[:3, :3] = cov_t
+    expected[3:, 3:] = V @ np.diag(np.deg2rad([3.0, 10.0, 20.0]) ** 2) @ V.T
+    np.testing.assert_allclose(out.cov, expected, rtol=1e-6, atol=1e-15)
+    # the costs it reports: the data's (constant) plus the translation prior's
+    r0, r1 = t0 - t_prior, out.t_world_obj - t_prior
+    prior_drop = float(r0 @ np.linalg.solve(cov_t, r0) - r1 @ np.linalg.solve(cov_t, r1))
+    np.testing.assert_allclose(out.cost_start - out.cost, prior_drop, rtol=1e-9)
