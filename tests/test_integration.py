@@ -38,13 +38,16 @@ def _post(url, body):
 
 
 def _offline(dataset, messages):
-    """The same messages through the daemon's decoder, synchroniser and worker, in order."""
+    """The same messages through the daemon's decoder, synchroniser and worker, in order, with
+    the daemon's settings (the environment's, as the daemon reads them)."""
     from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.tracker import TrackerConfig
     from posefuse.service.replay import replay_offline
+    from posefuse.service.settings import Settings
 
     network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
     worker = EstimatorWorker(
-        MultiViewEstimator(dataset.catalog),
+        MultiViewEstimator(dataset.catalog, TrackerConfig.with_verification(Settings().verify)),
         lambda image, stamp: network.detect(image, stamp_seed=stamp),
     )
     replay_offline(messages, worker, "itest")
