@@ -24,6 +24,26 @@ def _tube_once(robi_catalog):
     return _TUBE["model"], _TUBE["T"], _TUBE["views"], _TUBE["edges"]
 
 
+def _refine_from(model, edges, views, R0, t0, config, **kwargs):
+    """refine_pose from (R0, t0) with the priors there: 0.1 d on the translation, 20 degrees
+    on the rotation, the verification's edge settings."""
+    return refine_pose(
+        edges,
+        views,
+        R0,
+        t0,
+        t0,
+        np.eye(3) * (0.1 * model.diameter) ** 2,
+        np.eye(3) * np.deg2rad(20.0) ** 2,
+        CONFIG.edges.truncate_px,
+        CONFIG.edges.bins,
+        CONFIG.crease_weight,
+        CONFIG.mask_weight,
+        config,
+        **kwargs,
+    )
+
+
 def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog):
     model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
@@ -36,20 +56,8 @@ def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalo
         shift *= 0.05 * model.diameter / np.linalg.norm(shift)
         R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
         t0 = t_true + shift
-        out = refine_pose(
-            edges,
-            views,
-            R0,
-            t0,
-            t0,  # the prior sits where the start is: it does not know the truth
-            np.eye(3) * (0.1 * model.diameter) ** 2,
-            np.eye(3) * np.deg2rad(20.0) ** 2,
-            CONFIG.edges.truncate_px,
-            CONFIG.edges.bins,
-            CONFIG.crease_weight,
-            CONFIG.mask_weight,
-            RefineConfig(iterations=20),
-        )
+        # the prior sits where the start is: it does not know the truth
+        out = _refine_from(model, edges, views, R0, t0, RefineConfig(iterations=20))
         assert out.accepted and out.cost < out.cost_start
         _, angle = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
         assert np.rad2deg(angle) < 2.0
@@ -156,21 +164,7 @@ def _tube_refinement(robi_catalog, config, degrees=6.0, **kwargs):
     axis = np.array([0.6, -0.48, 0.64])
     R0 = so3_exp(np.deg2rad(degrees) * axis) @ R_true
     t0 = t_true + 0.02 * model.diameter * np.array([0.0, 0.6, 0.8])
-    out = refine_pose(
-        edges,
-        views,
-        R0,
-        t0,
-        t0,
-        np.eye(3) * (0.1 * model.diameter) ** 2,
-        np.eye(3) * np.deg2rad(20.0) ** 2,
-        CONFIG.edges.truncate_px,
-        CONFIG.edges.bins,
-        CONFIG.crease_weight,
-        CONFIG.mask_weight,
-        config,
-        **kwargs,
-    )
+    out = _refine_from(model, edges, views, R0, t0, config, **kwargs)
     return model, (R_true, t_true), (R0, t0), out
 
 
