@@ -142,13 +142,44 @@ def run_and_write(
     return report
 
 
-def tracker_config(no_verify: bool = False, no_refine: bool = False):
-    """The estimator's settings, with the multi-view verification or the refinement off."""
+def verification_settings(pairs: list[str] | None) -> dict[str, float]:
+    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields; a
+    PosefuseError names a malformed pair or an unknown field."""
+    import dataclasses
+
+    from posefuse.estimator.verification import VerificationConfig
+
+    # the annotations are strings (from __future__ import annotations)
+    numeric = {f.name: f.type for f in dataclasses.fields(VerificationConfig)}
+    numeric = {k: int if t == "int" else float for k, t in numeric.items() if t in ("int", "float")}
+    out: dict[str, float] = {}
+    for pair in pairs or ():
+        key, sep, value = pair.partition("=")
+        if not sep or key not in numeric:
+            raise PosefuseError(
+                f"--verification {pair!r}: expected KEY=VALUE with KEY one of {sorted(numeric)}"
+            )
+        try:
+            out[key] = numeric[key](value)
+        except ValueError:
+            raise PosefuseError(f"--verification {pair!r}: {value!r} is not a number") from None
+    return out
+
+
+def tracker_config(
+    no_verify: bool = False, no_refine: bool = False, verification: dict | None = None
+):
+    """The estimator's settings, with the multi-view verification or the refinement off, and
+    verification settings replaced (:func:`verification_settings`)."""
     import dataclasses
 
     from posefuse.estimator.tracker import TrackerConfig
 
     config = TrackerConfig()
+    if verification:
+        config = dataclasses.replace(
+            config, verification=dataclasses.replace(config.verification, **verification)
+        )
     if no_verify:
         config = dataclasses.replace(
             config, verification=dataclasses.replace(config.verification, enabled=False)
@@ -198,7 +229,9 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
         scene_ids,
         rotation=rotation,
         quiet=args.quiet,
-        config=tracker_config(args.no_verify, args.no_refine),
+        config=tracker_config(
+            args.no_verify, args.no_refine, verification_settings(args.verification)
+        ),
     )
     print(report.summary)
     print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
@@ -378,6 +411,12 @@ def register(subparsers) -> None:
         "--no-refine",
         action="store_true",
         help="verify across views, but do not refine (refinement is off by default already)",
+    )
+    p.add_argument(
+        "--verification",
+        action="append",
+        metavar="KEY=VALUE",
+        help="replace a verification setting, e.g. mask_weight=2.0 (repeatable; for tuning)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

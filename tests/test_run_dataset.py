@@ -137,3 +137,31 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     assert at4["instances"] > 20
     assert at4["add_sym"] > random_rotation.rate() + 0.4, at4
     assert at4["precision"] >= 0.55, at4
+
+
+def test_verification_settings_from_the_command_line_replace_only_what_they_name():
+    from posefuse.cli.run import tracker_config, verification_settings
+    from posefuse.estimator.errors import PosefuseError
+    from posefuse.estimator.verification import VerificationConfig
+
+    settings = verification_settings(["mask_weight=2.5", "max_views=3"])
+    assert settings == {"mask_weight": 2.5, "max_views": 3}
+    assert isinstance(settings["max_views"], int)
+    config = tracker_config(verification=settings)
+    default = VerificationConfig()
+    assert config.verification.mask_weight == 2.5 and config.verification.max_views == 3
+    assert config.verification.crease_weight == default.crease_weight
+    assert config.verification.enabled and config.refinement.enabled
+    # the ablation still switches both off, whatever was set
+    off = tracker_config(no_verify=True, verification=settings)
+    assert not off.verification.enabled and not off.refinement.enabled
+    assert verification_settings(None) == {}
+    for bad, says in [
+        ("mask=1", "mask=1"),
+        ("mask_weight", "KEY=VALUE"),
+        ("mask_weight=heavy", "'heavy' is not a number"),
+        ("edges=1", "edges=1"),
+        ("enabled=0", "enabled=0"),
+    ]:
+        with pytest.raises(PosefuseError, match=says):
+            verification_settings([bad])
