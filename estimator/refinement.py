@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
-from posefuse.estimator.geometry import hat, rotation_angle, so3_exp, so3_log
+from posefuse.estimator.geometry import hat, project_jacobian, rotation_angle, so3_exp, so3_log
 
 __all__ = ["RefineConfig", "Refinement", "refine_pose"]
 
@@ -143,12 +143,8 @@ def _linearize(
     v_l, s_l = view[read[live]], sample[read[live]]
     p_obj = edges.points[s_l]
     pts_cam = np.einsum("nij,nj->ni", R_cam[v_l], p_obj) + t_cam[v_l]  # (n, 3)
-    x, y, z = pts_cam[:, 0], pts_cam[:, 1], pts_cam[:, 2]
-    d_proj = np.zeros((len(live), 2, 3))  # d (x/z, y/z) / d p_cam
-    d_proj[:, 0, 0] = d_proj[:, 1, 1] = 1.0 / z
-    d_proj[:, 0, 2] = -x / z**2
-    d_proj[:, 1, 2] = -y / z**2
-    J_uv = stack.K[v_l, :2, :2] @ d_proj  # (n, 2, 3) pixels per metre
+    # d (x/z, y/z) / d p_cam, then each read's own RoI intrinsics: (n, 2, 3) pixels per metre
+    J_uv = stack.K[v_l, :2, :2] @ project_jacobian(pts_cam, np.eye(3))
     grad_p = np.einsum("ni,nij->nj", grad[live], J_uv)  # (n, 3) d distance / d p_cam
     R_cw = stack.R_cw[v_l]
     # d p_cam / d (dt, dphi) = [R_cw, -R_cw hat(R p)]: (n, 3, 6)
