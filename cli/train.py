@@ -44,6 +44,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         crop_batch=args.crop_batch,
         lr=args.lr,
         crop_box_channel=args.box_channel,
+        dihedral=args.dihedral,
         seed=args.seed,
         workers=args.workers,
         robi_fraction=args.robi_fraction,
@@ -100,6 +101,12 @@ def register(subparsers) -> None:
         action="store_true",
         help="give stage two the box as a fourth input channel (with --init from a checkpoint "
         "without it, its first layer is widened with zero weights)",
+    )
+    parser.add_argument(
+        "--dihedral",
+        action="store_true",
+        help="augment with upside-down flips (both stages) and transposes (stage two) besides "
+        "mirrors; kept in the checkpoint",
     )
     p.add_argument("--crop-batch", type=int, default=48, help="stage-two crops per step")
     p.add_argument(

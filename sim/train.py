@@ -75,6 +75,7 @@ class TrainConfig:
     warmup: int = 500
     width: int = 16
     crop_box_channel: bool = False  # stage two gets the box as a fourth input channel
+    dihedral: bool = False  # flips upside down and transposes besides mirrors (train_targets)
     seed: int = 0
     workers: int = 2
     robi_fraction: float = 0.5
@@ -133,6 +134,7 @@ _STREAM_FIELDS = (
     "warmup",
     "width",
     "crop_box_channel",
+    "dihedral",
     "seed",
     "robi_fraction",
     "restarts",
@@ -414,10 +416,13 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS and k not in ("restarts", "crop_box_channel")
+                if k in _STREAM_FIELDS
+                and k not in ("restarts", "crop_box_channel", "dihedral")
             },
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
             crop_box_channel=bool(stored.get("crop_box_channel", False)),
+            # a checkpoint older than the option was trained without it
+            dihedral=bool(stored.get("dihedral", False)),
         )
         if config.extend is not None:
             config = config.extended(*config.extend)
@@ -458,6 +463,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         crop_batch=config.crop_batch,
         crop_size=config.crop_size,
         box_channel=config.crop_box_channel,
+        dihedral=config.dihedral,
     )
     start = time.time()
     deadline = start + config.minutes * 60

@@ -41,6 +41,9 @@ class BatchConfig:
     box_channel: bool = False  # stage two also gets the box (jittered in aspect as well)
     aspect_jitter: float = 0.1  # log scale of the box's width and height apart
     on_part: float = 0.85  # share of detector crops that hold a part's center
+    # also flip upside down (both stages) and transpose (stage two's square crops), each half
+    # the time: a bin seen with the camera rolled by 90 or 180 degrees is as plausible a bin
+    dihedral: bool = False
 
 
 def det_targets(
@@ -93,6 +96,23 @@ def det_targets(
     return heat, weight, box, box_mask
 
 
+def flip_detector_sample(image, heat, weight, box, box_mask, axis: int):
+    """One detector crop and its targets flipped left-right (``axis`` 1) or upside down (0).
+
+    Args:
+        image: (H, W, 3); heat: (C, h, w); weight: (h, w); box: (4, h, w) log width, log
+            height, offset x, y; box_mask: (h, w).
+    Returns:
+        the five, flipped alike. A flip moves each cell's center by the stride's odd half,
+        exactly as it moves the pixels, so the sub-cell offset along the axis flips sign.
+    """
+    image = np.flip(image, axis)
+    heat, weight, box_mask = np.flip(heat, axis + 1), np.flip(weight, axis), np.flip(box_mask, axis)
+    box = np.flip(box, axis + 1).copy()
+    box[3 - axis] = -box[3 - axis]
+    return image, heat, weight, box, box_mask
+
+
 def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.random.Generator):
     """(images (B, H, W, 3) uint8, heat (B, C, h, w), weight (B, h, w), box (B, 4, h, w),
     box_mask (B, h, w))."""
@@ -124,16 +144,12 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
         heat, weight, box, box_mask = det_targets(
             rows, scale, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes
         )
+        sample = (image, heat, weight, box, box_mask)
         if rng.random() < 0.5:  # a mirrored bin is as plausible a bin
-            image = image[:, ::-1]
-            heat, weight, box, box_mask = (
-                heat[:, :, ::-1],
-                weight[:, ::-1],
-                box[:, :, ::-1].copy(),
-                box_mask[:, ::-1],
-            )
-            # mirroring moves each cell's center by the stride's odd half: offsets flip sign
-            box[2] = -box[2]
+            sample = flip_detector_sample(*sample, axis=1)
+        if config.dihedral and rng.random() < 0.5:  # and so is one upside down
+            sample = flip_detector_sample(*sample, axis=0)
+        image, heat, weight, box, box_mask = sample
         for lst, a in zip(out, (image, heat, weight, box, box_mask), strict=True):
             lst.append(np.ascontiguousarray(a))
     return tuple(np.stack(a) for a in out)
@@ -163,6 +179,24 @@ def crop_targets(
     n = np.maximum(np.hypot(dx, dy), 1e-6)
     vec = np.stack([dx / n, dy / n]).astype(np.float32) * label[None]
     return label, vec
+
+
+def dihedral_crop(crop, mask, label, vec, rng: np.random.Generator):
+    """One square crop and its targets flipped upside down, then transposed, each half the
+    time (the mirror is drawn before): with it, all eight turns and flips of the square.
+
+    Args:
+        crop: (S, S, 3); mask: (S, S); label: (g, g); vec: (2, g, g) unit vectors (x, y).
+    Returns:
+        the four, transformed alike (a flipped vector field still points at the center).
+    """
+    if rng.random() < 0.5:
+        crop, mask, label = crop[::-1], mask[::-1], label[::-1]
+        vec = vec[:, ::-1] * np.array([1, -1], np.float32)[:, None, None]
+    if rng.random() < 0.5:
+        crop, mask, label = crop.transpose(1, 0, 2), mask.T, label.T
+        vec = vec[::-1].transpose(0, 2, 1)
+    return crop, mask, label, vec
 
 
 def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np.ndarray):
@@ -213,6 +247,8 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
                 label[:, ::-1],
                 vec[:, :, ::-1] * np.array([-1, 1], np.float32)[:, None, None],
             )
+        if config.dihedral:
+            crop, mask, label, vec = dihedral_crop(crop, mask, label, vec, rng)
         crops.append(np.ascontiguousarray(crop))
         masks.append(np.ascontiguousarray(mask))
         labels.append(np.ascontiguousarray(label))

@@ -18,7 +18,14 @@ from posefuse.estimator.frontend.two_stage import (
 from posefuse.estimator.frontend.voting import VotingConfig
 from posefuse.service.resources import DEFAULT_CATALOG
 from posefuse.sim.train_data import render_scene
-from posefuse.sim.train_targets import BatchConfig, crop_batch, crop_targets, det_targets
+from posefuse.sim.train_targets import (
+    BatchConfig,
+    crop_batch,
+    crop_targets,
+    det_targets,
+    dihedral_crop,
+    flip_detector_sample,
+)
 
 
 @pytest.fixture(scope="module")
@@ -168,3 +175,76 @@ def test_training_crops_carry_the_box_they_were_cut_around(view):
     plain = BatchConfig(crop_batch=24, background_crops=0.0)
     crops0, masks0, _, _ = crop_batch(ts, plain, np.random.default_rng(3), candidates)
     assert not masks0.any() and crops0.shape == crops.shape
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_a_flipped_detector_sample_decodes_to_the_flipped_boxes(view, axis):
+    """Mirrors and upside-down flips (training's augmentation) keep the targets exact: decoding
+    the flipped targets gives the truth's box centers flipped in the detector's input pixels."""
+    _, _, small, rows = view
+    scale = 0.5
+    h, w = small.shape[0] // 4, small.shape[1] // 4
+    heat, weight, box, box_mask = det_targets(rows, scale, (0, 0), (h, w), 5)
+    image, heat, weight, box, box_mask = flip_detector_sample(
+        small, heat, weight, box, box_mask, axis
+    )
+    assert image.shape == small.shape and np.array_equal(image, np.flip(small, axis))
+    boxes = decode_boxes(np.concatenate([heat, box], 0), scale, TwoStageConfig(min_score=0.99))
+    positives = rows[rows[:, 9] >= 0.3]
+    assert len(boxes) == len(positives) > 10
+    # box centers in input pixels (pixel-center coordinates), flipped along the axis
+    truth = np.stack(
+        [
+            (positives[:, 5] + positives[:, 7]) / 2 * scale - 0.5,
+            (positives[:, 6] + positives[:, 8]) / 2 * scale - 0.5,
+        ],
+        1,
+    )
+    extent = small.shape[axis]
+    truth[:, 1 - axis] = extent - 1 - truth[:, 1 - axis]
+    for b in boxes:
+        center_in = (b.center + 0.5) * scale - 0.5
+        d = np.linalg.norm(truth - center_in, axis=1)
+        j = int(np.argmin(d))
+        assert d[j] < 0.3
+        assert int(positives[j, 2]) - 1 == b.class_index
+        size = positives[j, 7:9] - positives[j, 5:7]
+        assert np.allclose(b.size, size, rtol=0.02, atol=1.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_turned_or_flipped_crop_still_points_at_its_center(view, seed):
+    """Stage two's dihedral augmentation: after any flip and transpose the crop's pixels and
+    label move together, and every labelled cell's vector points at the transformed center."""
+    rgb, inst, _, rows = view
+    r = rows[rows[:, 9] > 0.75][seed]
+    k, S = int(r[1]), 96
+    side = max(r[7] - r[5], r[8] - r[6])
+    a, b = crop_transform(np.array([(r[5] + r[7]) / 2, (r[6] + r[8]) / 2]), 1.2 * side, S)
+    crop = warp_crop(rgb, a, b, S, 1)
+    label, vec = crop_targets(inst, k, r[3:5], a, b, S)
+    mask = np.zeros((S, S), np.uint8)
+    mask[10:30, 50:60] = 1
+    rng = np.random.default_rng(seed)
+    flip, transpose = rng.random() < 0.5, rng.random() < 0.5  # the draws dihedral_crop makes
+    out = dihedral_crop(crop, mask, label, vec, np.random.default_rng(seed))
+    crop2, mask2, label2, vec2 = out
+    # the center in output-cell coordinates: cell j is crop pixel 4 j + 1.5
+    center = ((r[3:5] - b) / a - 1.5) / 4
+    expect_crop, expect_mask, expect_label = crop, mask, label
+    g = label.shape[0]
+    if flip:
+        center[1] = g - 1 - center[1]
+        expect_crop, expect_mask, expect_label = crop[::-1], mask[::-1], label[::-1]
+    if transpose:
+        center = center[::-1]
+        expect_crop = expect_crop.transpose(1, 0, 2)
+        expect_mask, expect_label = expect_mask.T, expect_label.T
+    assert np.array_equal(crop2, expect_crop) and np.array_equal(mask2, expect_mask)
+    assert np.array_equal(label2, expect_label) and label2.sum() > 20
+    ys, xs = np.nonzero(label2)
+    to_center = center[None] - np.stack([xs, ys], 1)
+    to_center /= np.maximum(np.linalg.norm(to_center, axis=1, keepdims=True), 1e-9)
+    far = np.linalg.norm(center[None] - np.stack([xs, ys], 1), axis=1) > 1.0
+    cosines = np.sum(vec2[:, ys, xs].T * to_center, axis=1)
+    assert np.all(cosines[far] > 0.999)
