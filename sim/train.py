@@ -416,8 +416,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS
-                and k not in ("restarts", "crop_box_channel", "dihedral")
+                if k in _STREAM_FIELDS and k not in ("restarts", "crop_box_channel", "dihedral")
             },
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
             crop_box_channel=bool(stored.get("crop_box_channel", False)),
