@@ -102,7 +102,7 @@ def register(subparsers) -> None:
         help="give stage two the box as a fourth input channel (with --init from a checkpoint "
         "without it, its first layer is widened with zero weights)",
     )
-    parser.add_argument(
+    p.add_argument(
         "--dihedral",
         action="store_true",
         help="augment with upside-down flips (both stages) and transposes (stage two) besides "
