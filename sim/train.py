@@ -448,13 +448,24 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         )
     nets = _Nets(len(catalog), config)
     step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
+    # what a fine-tune started from, so that its learning curve can continue the base's
+    lineage = None
     if base is not None:
         fresh = nets.init_from(base["nets"])
         tqdm.write(f"fine-tuning from {config.init}; new layers: {', '.join(fresh) or 'none'}")
+        lineage = {
+            "checkpoint": str(config.init),
+            "catalog_hash": base.get("catalog_hash"),
+            "step": base.get("step"),
+            "cpu_seconds": base.get("cpu_seconds"),
+            "wall_seconds": base.get("wall_seconds"),
+            "curve": base.get("curve", []),
+        }
     if state is not None:
         nets.load(state["nets"])
         step, cpu_seconds, wall_seconds = state["step"], state["cpu_seconds"], state["wall_seconds"]
         curve = state["curve"]
+        lineage = state.get("init_from")
     view_rows = ts.view_instances()
     candidates = np.flatnonzero(ts.instances[:, 9] >= MIN_TARGET_VISIB)
     batch_config = BatchConfig(
@@ -503,6 +514,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
                 "cpu_seconds": cpu_seconds,
                 "wall_seconds": wall_seconds,
                 "curve": curve,
+                "init_from": lineage,
                 "nets": nets.state(),
             },
             ckpt_path.with_suffix(".tmp"),

@@ -130,3 +130,41 @@ def test_extend_lengthens_a_finished_schedule_and_the_checkpoint_keeps_it(tmp_pa
     # resuming the extended checkpoint without --extend has nothing left to do
     train(DEFAULT_CATALOG, out, _config(tmp_path, resume=str(tmp_path / "m.ckpt")))
     assert _weights(tmp_path / "m.ckpt")[1]["step"] == 9
+
+
+def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_path):
+    base_ckpt = tmp_path / "base" / "m.ckpt"
+    train(DEFAULT_CATALOG, base_ckpt.with_suffix(".onnx"), _config(tmp_path))
+    _, base = _weights(base_ckpt)
+    assert base["config"]["dihedral"] is False and base["init_from"] is None
+    tuned = tmp_path / "tuned" / "m.onnx"
+    train(
+        DEFAULT_CATALOG, tuned, _config(tmp_path, init=str(base_ckpt), dihedral=True, run_steps=3)
+    )
+    _, half = _weights(tuned.with_suffix(".ckpt"))
+    assert half["config"]["dihedral"] is True
+    # the base's step and CPU time are kept beside the fine-tune's own, which start at zero
+    assert half["init_from"]["step"] == 6
+    assert half["init_from"]["cpu_seconds"] == pytest.approx(base["cpu_seconds"])
+    assert half["step"] == 3
+    # a resume keeps both, whatever it is told
+    train(
+        DEFAULT_CATALOG,
+        tuned,
+        _config(tmp_path, resume=str(tuned.with_suffix(".ckpt")), dihedral=False),
+    )
+    _, end = _weights(tuned.with_suffix(".ckpt"))
+    assert end["step"] == 6 and end["config"]["dihedral"] is True
+    assert end["init_from"]["step"] == 6
+    # a checkpoint written before the option existed was trained without it, and resumes so
+    state = torch.load(base_ckpt, map_location="cpu", weights_only=False)
+    del state["config"]["dihedral"]
+    old = tmp_path / "old" / "m.ckpt"
+    old.parent.mkdir()
+    torch.save(state, old)
+    train(
+        DEFAULT_CATALOG,
+        old.with_suffix(".onnx"),
+        _config(tmp_path, resume=str(old), dihedral=True, extend=(2, 1e-3)),
+    )
+    assert _weights(old)[1]["config"]["dihedral"] is False
