@@ -68,6 +68,7 @@ from posefuse.estimator.verification import (
     ScoreCache,
     Verdict,
     VerificationConfig,
+    is_new_viewpoint,
     near_symmetries,
     verify,
 )
@@ -541,7 +542,18 @@ class MultiViewEstimator:
             for m in matcher.measure(image, K, t_cam, mask):
                 R_world_obj = T_cam_world[:3, :3].T @ m.R_cam_obj
                 track.mixture.add(R_world_obj, m.confidence)
-            if vcfg.enabled and t_cam[2] > MIN_DEPTH:
+            others = [v.T_cam_world for v in track.edge_views if v.stamp_ns != stamp]
+            if (
+                vcfg.enabled
+                and t_cam[2] > MIN_DEPTH
+                and is_new_viewpoint(
+                    np.array(others).reshape(-1, 4, 4),
+                    T_cam_world,
+                    t_world,
+                    vcfg.keyframe_deg,
+                    vcfg.keyframe_distance_frac,
+                )
+            ):
                 view = edge_view(
                     image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp
                 )
@@ -549,7 +561,11 @@ class MultiViewEstimator:
                 del track.edge_views[: -vcfg.max_views]
                 added = True
         track.pending.clear()
-        if added:
+        # verified again when a view adds to what the kept views show, or when the mixture
+        # no longer has the components the last verdict weighed
+        verdict = track.verdict
+        stale = verdict is None or len(verdict.weights) != len(track.mixture.components)
+        if added or (stale and track.edge_views):
             self._verify(track)
 
     def _model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:

@@ -39,6 +39,7 @@ __all__ = [
     "VerificationConfig",
     "Verdict",
     "cached_scores",
+    "is_new_viewpoint",
     "near_symmetries",
     "score_hypotheses",
     "verify",
@@ -50,6 +51,11 @@ class VerificationConfig:
     enabled: bool = True
     edges: EdgeConfig = EdgeConfig()
     max_views: int = 6  # views kept per track (the most recent), memory ~150 kB each
+    # a view is kept, and the track verified again, only when it sees the part from a new
+    # viewpoint: its direction from the part at least this far from every kept view's, or its
+    # distance this much nearer or farther (a camera at rest adds nothing the kept views lack)
+    keyframe_deg: float = 5.0
+    keyframe_distance_frac: float = 0.15
     max_components: int = 5  # the leading components are verified, with their variants
     crease_weight: float = 0.5  # weight of the creases' chamfer against the contour's
     mask_weight: float = 1.5  # weight of the mask-boundary chamfer against the contour's
@@ -136,6 +142,41 @@ class Verdict:
     per_view: np.ndarray
     weights: np.ndarray
     best: int
+
+
+def is_new_viewpoint(
+    kept_T_cam_world: np.ndarray,
+    T_cam_world: np.ndarray,
+    t_world_obj: np.ndarray,
+    min_angle_deg: float,
+    min_distance_frac: float,
+) -> bool:
+    """Whether a view sees the part from a viewpoint none of the kept views has.
+
+    Args:
+        kept_T_cam_world: (V, 4, 4) the kept views' camera poses (V may be 0).
+        T_cam_world: (4, 4) the new view's.
+        t_world_obj: (3,) the part's position.
+        min_angle_deg: the least angle, at the part, between the new camera's direction and a
+            kept one's for the new view to differ from it.
+        min_distance_frac: or the least relative change of the camera's distance.
+    Returns:
+        True when no kept view lies within both bounds of the new one.
+    """
+    kept = np.asarray(kept_T_cam_world, float).reshape(-1, 4, 4)
+    if not len(kept):
+        return True
+
+    def offsets(T):  # (..., 3) camera centres minus the part's position, world frame
+        R, t = T[..., :3, :3], T[..., :3, 3]
+        return -np.einsum("...ji,...j->...i", R, t) - t_world_obj
+
+    d_new, d_kept = offsets(np.asarray(T_cam_world, float)), offsets(kept)
+    r_new, r_kept = np.linalg.norm(d_new), np.linalg.norm(d_kept, axis=1)
+    cos = (d_kept @ d_new) / np.maximum(r_kept * r_new, 1e-12)
+    near_direction = cos > np.cos(np.deg2rad(min_angle_deg))
+    near_distance = np.abs(np.log(r_new / np.maximum(r_kept, 1e-12))) < np.log1p(min_distance_frac)
+    return not bool(np.any(near_direction & near_distance))
 
 
 def near_symmetries(

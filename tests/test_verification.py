@@ -10,6 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from posefuse.estimator.camera import Camera
 from posefuse.estimator.edges import edge_view, model_edges, pose_edges
@@ -226,6 +228,84 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
         track = estimator.tracks[e.object_id]
         if track.mixture is not None and track.mixture.components:
             assert np.allclose(e.T_world_obj[:3, :3], track.mixture.best().R_world_obj)
+
+
+def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
+    small_dataset_root, default_banks, monkeypatch
+):
+    """A camera at rest (the same pose, a later stamp) adds no edge maps and no verification;
+    the verdict and the published pose stay as they were."""
+    from posefuse.estimator import tracker as tracker_module
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+    from posefuse.estimator.tracker import Frame
+
+    dataset = load_dataset(small_dataset_root)
+    scene_id = dataset.scene_ids[0]
+    estimator = _run_scene(dataset, scene_id, None, default_banks)
+    scene = dataset.scene(scene_id)
+    last = scene.im_ids[-1]
+    kept = {k: [v.stamp_ns for v in t.edge_views] for k, t in estimator.tracks.items()}
+    verdicts = {k: t.verdict for k, t in estimator.tracks.items()}
+    assert sum(v is not None for v in verdicts.values()) > 0
+    calls = []
+    real_edge_view = tracker_module.edge_view
+    monkeypatch.setattr(
+        tracker_module, "edge_view", lambda *a, **k: calls.append(1) or real_edge_view(*a, **k)
+    )
+    front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
+    view = scene.view(last)
+    frame = Frame(10_000 + last, view.camera, view.T_world_cam, scene.load_rgb(last))
+    estimator.update(frame, front.detect(view))
+    assert calls == []
+    for k, t in estimator.tracks.items():
+        if k in kept:
+            assert [v.stamp_ns for v in t.edge_views] == kept[k]
+            if t.verdict is not None and len(t.verdict.weights) == len(t.mixture.components):
+                assert t.verdict is verdicts[k]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    angle=st.floats(0.0, 60.0),
+    ratio=st.floats(0.6, 1.6),
+    roll=st.floats(-np.pi, np.pi),
+    axis=st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0.2, 1)),
+)
+def test_a_viewpoint_is_new_when_it_turns_or_moves_past_the_bounds(angle, ratio, roll, axis):
+    """Two cameras looking at a part: the second is new exactly when its direction from the part
+    turned by the bound or more, or its distance changed by the bound or more; rolling a camera
+    about its own axis changes nothing."""
+    from posefuse.estimator.verification import is_new_viewpoint
+
+    t_obj = np.array([0.1, -0.05, 0.02])
+    eye0 = t_obj + np.array([0.0, 0.0, 0.7])
+    # the second camera: the first's offset turned by `angle` about a horizontal-ish axis
+    a = np.array([axis[0], axis[1], 0.0])
+    if np.linalg.norm(a) < 1e-3:
+        a = np.array([1.0, 0.0, 0.0])
+    turn = so3_exp(a / np.linalg.norm(a) * np.deg2rad(angle))
+    eye1 = t_obj + ratio * (turn @ (eye0 - t_obj))
+
+    def camera(eye, roll_angle):
+        z = (t_obj - eye) / np.linalg.norm(t_obj - eye)
+        x = np.cross([0.3, 1.0, 0.1], z)
+        x /= np.linalg.norm(x)
+        R_world_cam = np.stack([x, np.cross(z, x), z], 1) @ so3_exp(np.array([0, 0, roll_angle]))
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R_world_cam.T, -R_world_cam.T @ eye
+        return T  # T_cam_world
+
+    kept = camera(eye0, 0.0)[None]
+    new = is_new_viewpoint(kept, camera(eye1, roll), t_obj, 5.0, 0.15)
+    near_angle, near_distance = angle < 5.0 - 1e-6, abs(np.log(ratio)) < np.log(1.15) - 1e-6
+    far_angle, far_distance = angle > 5.0 + 1e-6, abs(np.log(ratio)) > np.log(1.15) + 1e-6
+    if near_angle and near_distance:
+        assert not new
+    if far_angle or far_distance:
+        assert new
+    assert is_new_viewpoint(np.zeros((0, 4, 4)), kept[0], t_obj, 5.0, 0.15)
+    assert not is_new_viewpoint(kept, camera(eye0, roll), t_obj, 5.0, 0.15)
 
 
 def _cache_setting(robi_catalog):
