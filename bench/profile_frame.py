@@ -105,8 +105,9 @@ def instrumented(timer: StageTimer):
             setattr(owner, name, fn)
 
 
-def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int) -> dict:
-    """Per-stage mean ms per frame and whole-frame median/p95 over the scenes' views."""
+def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, config=None) -> dict:
+    """Per-stage mean ms per frame and whole-frame median/p95 over the scenes' views, with the
+    estimator's ``config`` (a TrackerConfig; default: its defaults)."""
     import zenoh
 
     from posefuse.estimator.dataset import load_dataset
@@ -118,7 +119,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int) -
     ds = load_dataset(dataset_dir)
     network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads)
     decode = decoders()["image"]
-    estimator = MultiViewEstimator(ds.catalog)
+    estimator = MultiViewEstimator(ds.catalog, config)
     estimator.warm_up()  # as posefuse serve does before its first frame
     frames = []
     n_objects = []
@@ -186,8 +187,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", type=int, action="append", required=True, help="scene id")
     parser.add_argument("--repeat", type=int, default=3, help="runs of each scene")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
+    parser.add_argument(
+        "--verification",
+        action="append",
+        metavar="KEY=VALUE",
+        help="a verification setting, as posefuse run-dataset takes it (repeat for several), "
+        "e.g. keyframe_deg=0 to verify at every view",
+    )
     args = parser.parse_args(argv)
-    r = profile(args.dataset, args.scene, args.repeat, args.threads)
+    from posefuse.cli.run import tracker_config, verification_settings
+
+    config = tracker_config(verification=verification_settings(args.verification))
+    r = profile(args.dataset, args.scene, args.repeat, args.threads, config)
     print(
         f"{args.dataset} scenes {args.scene}: {r['frames']} frames, "
         f"{r['objects_per_view']:.1f} objects per view"
