@@ -1,0 +1,89 @@
+"""How much of the front end's accuracy is memory: recall and precision on views it trained on.
+
+    python -m posefuse.bench.frontend_seen --training-set DIR [--model M.onnx] [--views 30]
+
+``DIR`` is a rendered training set (``posefuse train --data-dir``: the folder that holds
+``meta.json``). Its first ``--views`` views of each profile (one in two, so that two views of a
+scene do not both count) go through the front end, and are scored as ``eval-frontend`` scores a
+BOP dataset (``estimator.frontend.metrics``): detections matched one to one to the annotated
+parts of their class within 15 px; recall over the parts more than 75% visible, precision over
+every detection. Far better numbers here than on the tuning sets mean the network has learned
+these views rather than the task: more scenes, or more augmentation, is then what it needs.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from posefuse.estimator.frontend.network import NetworkFrontend
+from posefuse.estimator.objects import load_catalog
+from posefuse.service.resources import DEFAULT_MODEL
+
+MAX_PX = 15.0
+MIN_VISIB = 0.75
+
+
+def score_view(detections, rows: np.ndarray, class_of: dict[int, int]) -> tuple[int, int, int]:
+    """(parts found, parts more than 75% visible, detections matched) of one view.
+
+    Args:
+        detections: the front end's detections.
+        rows: (K, 11) the view's instance rows (``sim.train_data.INSTANCE_COLUMNS``).
+        class_of: output class index (1..C) -> obj_id.
+    """
+    cost = np.full((len(detections), len(rows)), 1e9)
+    for i, d in enumerate(detections):
+        for j, r in enumerate(rows):
+            if class_of[int(r[2])] == d.obj_id:
+                dist = float(np.hypot(*(d.center_uv - r[3:5])))
+                if dist <= MAX_PX:
+                    cost[i, j] = dist
+    matched: set[int] = set()
+    if cost.size:
+        a, b = linear_sum_assignment(cost)
+        matched = {int(j) for i, j in zip(a, b, strict=True) if cost[i, j] < 1e9}
+    visible = rows[:, 9] > MIN_VISIB
+    found = sum(1 for j in matched if visible[j])
+    return found, int(visible.sum()), len(matched)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from posefuse.sim.train_data import class_index, open_training_set, profile_of
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--training-set", required=True, help="a rendered training set folder")
+    parser.add_argument("--model", default=str(DEFAULT_MODEL), help="a two-stage ONNX model")
+    parser.add_argument("--views", type=int, default=30, help="views scored per profile")
+    args = parser.parse_args(argv)
+    ts = open_training_set(args.training_set)
+    spec = ts.meta["spec"]
+    catalog = load_catalog(ts.meta["catalog"])
+    class_of = {k: obj_id for obj_id, k in class_index(catalog).items()}
+    fe = NetworkFrontend(args.model, catalog)
+    rows_of = ts.view_instances()
+    totals = {p: np.zeros(4, int) for p in ("mixed", "robi")}  # found, parts, matched, dets
+    seen = dict.fromkeys(totals, 0)
+    for v in range(0, ts.n_views, 2):
+        profile = profile_of(v // spec["views"], spec["robi_fraction"])
+        if seen[profile] >= args.views:
+            continue
+        seen[profile] += 1
+        detections = fe.detect(np.asarray(ts.full_rgb[v]), stamp_seed=v)
+        found, parts, matched = score_view(detections, rows_of[v], class_of)
+        totals[profile] += (found, parts, matched, len(detections))
+    print(f"model {args.model}, training set {args.training_set}")
+    print("| profile | views | parts | recall | precision |")
+    print("|---|---|---|---|---|")
+    for profile, (found, parts, matched, dets) in totals.items():
+        print(
+            f"| {profile} | {seen[profile]} | {parts} | {found / max(parts, 1):.3f} "
+            f"| {matched / max(dets, 1):.3f} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,39 @@
+"""bench.frontend_seen scores a training set's views as eval-frontend scores a dataset: one to
+one, same class, within 15 px, recall over the parts more than 75% visible."""
+
+import numpy as np
+
+from posefuse.bench.frontend_seen import score_view
+from posefuse.estimator.frontend.detection import Detection
+
+
+def _row(cls, u, v, visib):
+    # view, instance, class, u, v, x0, y0, x1, y1, visib_fract, visible_px
+    return [0, 0, cls, u, v, u - 10, v - 10, u + 10, v + 10, visib, 400]
+
+
+def _det(obj_id, u, v):
+    return Detection(
+        obj_id, np.array([u - 10, v - 10, 20, 20.0]), np.array([u, v]), np.eye(2), None, 0.9
+    )
+
+
+def test_one_to_one_same_class_within_15_px_recall_over_the_visible_parts():
+    class_of = {1: 7, 2: 9}
+    rows = np.array(
+        [
+            _row(1, 100, 100, 0.9),  # found by the first detection
+            _row(1, 104, 100, 0.9),  # the same detection can't also find this one
+            _row(2, 300, 300, 0.9),  # a detection of another class is near: not found
+            _row(1, 500, 500, 0.5),  # barely visible, found: not in recall, matched for precision
+            _row(1, 700, 700, 0.95),  # the detection is 16 px away: not found
+        ],
+        float,
+    )
+    dets = [_det(7, 101, 100), _det(7, 300, 302), _det(7, 500, 503), _det(7, 716, 700)]
+    found, parts, matched = score_view(dets, rows, class_of)
+    assert (found, parts, matched) == (1, 4, 2)
+    # the second part is found by a second detection beside the first
+    found, parts, matched = score_view(dets + [_det(7, 104, 101)], rows, class_of)
+    assert (found, parts, matched) == (2, 4, 3)
+    assert score_view([], rows, class_of) == (0, 4, 0)
