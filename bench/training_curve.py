@@ -14,18 +14,48 @@ from pathlib import Path
 
 
 def load_curve(checkpoint: str | Path) -> list[dict]:
+    """The checkpoint's points, after those of the checkpoints it was fine-tuned from
+    (``posefuse train --init``): steps and hours then count from the first run's start, and
+    each point says which run (1, 2, ...) it belongs to."""
     import torch
 
     state = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    return state["curve"]
+    return lineage_curve(state)
+
+
+def _totals(record: dict | None) -> dict:
+    """Step, CPU and wall hours at the end of ``record`` (a checkpoint or an ``init_from``),
+    counted from the first run's start."""
+    if not record:
+        return {"step": 0, "cpu_hours": 0.0, "wall_hours": 0.0}
+    before = _totals(record.get("init_from"))
+    return {
+        "step": before["step"] + (record.get("step") or 0),
+        "cpu_hours": before["cpu_hours"] + (record.get("cpu_seconds") or 0.0) / 3600,
+        "wall_hours": before["wall_hours"] + (record.get("wall_seconds") or 0.0) / 3600,
+    }
+
+
+def lineage_curve(state: dict) -> list[dict]:
+    """(see load_curve) ``state``: a checkpoint, or its ``init_from`` record."""
+    depth, record = 0, state.get("init_from")
+    while record:
+        depth, record = depth + 1, record.get("init_from")
+    base = state.get("init_from")
+    before = lineage_curve(base) if base else []
+    offset = _totals(base)
+    return before + [
+        {**p, "run": depth + 1, **{k: p[k] + offset[k] for k in offset}}
+        for p in state.get("curve", [])
+    ]
 
 
 def curve_table(curve: list[dict]) -> str:
     sets = sorted({name for p in curve for name in p.get("tuning", {})})
-    head = "| step | CPU h | wall h | " + " | ".join(
+    head = "| run | step | CPU h | wall h | " + " | ".join(
         f"{s}: recall / precision / median px / NEES" for s in sets
     )
-    lines = [head + " |", "|" + "---|" * (3 + len(sets))]
+    lines = [head + " |", "|" + "---|" * (4 + len(sets))]
     for p in curve:
         cells = []
         for s in sets:
@@ -37,7 +67,7 @@ def curve_table(curve: list[dict]) -> str:
                 else "-"
             )
         lines.append(
-            f"| {p['step']} | {p['cpu_hours']:.2f} | {p['wall_hours']:.2f} | "
+            f"| {p.get('run', 1)} | {p['step']} | {p['cpu_hours']:.2f} | {p['wall_hours']:.2f} | "
             + " | ".join(cells)
             + " |"
         )

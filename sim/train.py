@@ -460,6 +460,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "cpu_seconds": base.get("cpu_seconds"),
             "wall_seconds": base.get("wall_seconds"),
             "curve": base.get("curve", []),
+            "init_from": base.get("init_from"),  # and what the base started from
         }
     if state is not None:
         nets.load(state["nets"])

@@ -1,5 +1,6 @@
-"""bench.frontend_seen scores a training set's views as eval-frontend scores a dataset: one to
-one, same class, within 15 px, recall over the parts more than 75% visible."""
+"""The training tools: bench.frontend_seen scores a training set's views as eval-frontend scores
+a dataset (one to one, same class, within 15 px, recall over the parts more than 75% visible),
+and bench.training_curve continues a fine-tune's curve from its base's."""
 
 import numpy as np
 
@@ -37,3 +38,22 @@ def test_one_to_one_same_class_within_15_px_recall_over_the_visible_parts():
     found, parts, matched = score_view(dets + [_det(7, 104, 101)], rows, class_of)
     assert (found, parts, matched) == (2, 4, 3)
     assert score_view([], rows, class_of) == (0, 4, 0)
+
+
+def test_a_fine_tunes_learning_curve_continues_its_bases():
+    from posefuse.bench.training_curve import curve_table, lineage_curve
+
+    def point(step, cpu):
+        return {"step": step, "cpu_hours": cpu, "wall_hours": cpu / 2, "tuning": {}}
+
+    first = {"step": 100, "cpu_seconds": 3600.0, "wall_seconds": 1800.0, "curve": [point(50, 0.5)]}
+    second = {**first, "curve": [point(40, 0.4)], "step": 60, "init_from": first}
+    state = {"curve": [point(10, 0.1), point(20, 0.2)], "init_from": second}
+    curve = lineage_curve(state)
+    assert [p["run"] for p in curve] == [1, 2, 3, 3]
+    # each run counts on from the end of the one before: its steps and hours, scored or not
+    assert [p["step"] for p in curve] == [50, 140, 170, 180]
+    assert np.allclose([p["cpu_hours"] for p in curve], [0.5, 1.4, 2.1, 2.2])
+    assert np.allclose([p["wall_hours"] for p in curve], [0.25, 0.7, 1.05, 1.1])
+    assert lineage_curve({"curve": [point(5, 0.1)]}) == [{**point(5, 0.1), "run": 1}]
+    assert curve_table(curve).splitlines()[2].startswith("| 1 | 50 | 0.50 | 0.25 |")
