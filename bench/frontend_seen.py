@@ -1,6 +1,7 @@
 """How much of the front end's accuracy is memory: recall and precision on views it trained on.
 
     python -m posefuse.bench.frontend_seen --training-set DIR [--model M.onnx] [--views 30]
+        [--first-view N]
 
 ``DIR`` is a rendered training set (``posefuse train --data-dir``: the folder that holds
 ``meta.json``). Its first ``--views`` views of each profile (one in two, so that two views of a
@@ -57,6 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--training-set", required=True, help="a rendered training set folder")
     parser.add_argument("--model", default=str(DEFAULT_MODEL), help="a two-stage ONNX model")
     parser.add_argument("--views", type=int, default=30, help="views scored per profile")
+    parser.add_argument(
+        "--first-view",
+        type=int,
+        default=0,
+        help="start at this view (a set rendered larger than the model's: its scenes the model "
+        "never saw, from the same generator)",
+    )
     args = parser.parse_args(argv)
     ts = open_training_set(args.training_set)
     spec = ts.meta["spec"]
@@ -66,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     rows_of = ts.view_instances()
     totals = {p: np.zeros(4, int) for p in ("mixed", "robi")}  # found, parts, matched, dets
     seen = dict.fromkeys(totals, 0)
-    for v in range(0, ts.n_views, 2):
+    for v in range(args.first_view - args.first_view % 2, ts.n_views, 2):
         profile = profile_of(v // spec["views"], spec["robi_fraction"])
         if seen[profile] >= args.views:
             continue
