@@ -61,6 +61,31 @@ def test_hexagonal_prism_is_dihedral_of_order_six():
     _assert_group_preserves_surface(mesh, rep.discrete, 1e-4)
 
 
+@pytest.mark.parametrize(
+    "make, main_order",
+    [
+        (lambda: trimesh.creation.cylinder(radius=0.02, height=0.06, sections=64), 0),
+        (lambda: trimesh.creation.cylinder(radius=0.02, height=0.01, sections=6), 6),
+        (lambda: trimesh.creation.box([0.05, 0.03, 0.02]), 2),
+    ],
+)
+def test_axes_are_distinct_main_axis_first_and_alternatives_are_not_claims(make, main_order):
+    """The report's axes: the main one first (a continuous axis before any discrete one, then
+    the highest order), no two along one direction, and no alternative that repeats a claimed
+    axis with its order."""
+    rep = _detect(make())
+    axes = rep.axes
+    assert axes and axes[0].order == main_order
+    if main_order == 0:
+        np.testing.assert_allclose(np.abs(axes[0].axis), [0, 0, 1], atol=1e-3)
+    for i, a in enumerate(axes):
+        for b in axes[i + 1 :]:
+            assert abs(np.dot(a.axis, b.axis)) < 0.99
+    assert all(a.order <= axes[0].order for a in axes[1:] if axes[0].order)
+    for alt in rep.alternatives:
+        assert not any(abs(np.dot(alt.axis, a.axis)) > 0.99 and alt.order == a.order for a in axes)
+
+
 def test_off_centre_symmetry_axis_carries_its_offset():
     mesh = trimesh.creation.cylinder(radius=0.02, height=0.01, sections=6)
     mesh.apply_transform(trimesh.transformations.rotation_matrix(0.4, [1, 2, 0]))
