@@ -298,6 +298,13 @@ class _Nets:
         model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
 
 
+def _lineage_cpu(record: dict | None) -> float:
+    """CPU seconds of the checkpoints a fine-tune started from (``init_from``, recursively)."""
+    if not record:
+        return 0.0
+    return float(record.get("cpu_seconds") or 0.0) + _lineage_cpu(record.get("init_from"))
+
+
 def _float_copy(model):
     import copy
 
@@ -575,7 +582,9 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "render_minutes_this_run": round(render_minutes, 1),
             "seed": config.seed,
             "bf16_autocast": config.bf16,
-            "initialised_from": config.init,
+            "initialised_from": config.init or (lineage or {}).get("checkpoint"),
+            # this run's hours and those of every checkpoint it was fine-tuned from
+            "cumulative_cpu_hours": round((cpu_seconds + _lineage_cpu(lineage)) / 3600, 3),
         },
         "validation": val_metrics,
         **config.extra,

@@ -148,12 +148,17 @@ def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_pa
     assert half["init_from"]["cpu_seconds"] == pytest.approx(base["cpu_seconds"])
     assert half["step"] == 3
     # a resume keeps both, whatever it is told
-    train(
+    card = train(
         DEFAULT_CATALOG,
         tuned,
         _config(tmp_path, resume=str(tuned.with_suffix(".ckpt")), dihedral=False),
     )
     _, end = _weights(tuned.with_suffix(".ckpt"))
+    # the card names where the weights came from, and counts the base's hours too
+    assert card["training"]["initialised_from"] == str(base_ckpt)
+    assert card["training"]["cumulative_cpu_hours"] == pytest.approx(
+        (end["cpu_seconds"] + base["cpu_seconds"]) / 3600, abs=2e-3
+    )
     assert end["step"] == 6 and end["config"]["dihedral"] is True
     assert end["init_from"]["step"] == 6
     # a checkpoint written before the option existed was trained without it, and resumes so
