@@ -117,6 +117,15 @@ def test_asymmetric_part_has_no_symmetry():
     rep = _detect(mesh)
     assert not rep.is_symmetric
     assert rep.describe() == "none"
+    assert rep.group_residual == 0.0  # no group, nothing of it fails
+
+
+def test_the_report_carries_the_group_residual_and_the_tolerances_it_was_found_with():
+    mesh = trimesh.creation.cylinder(radius=0.02, height=0.01, sections=6)
+    rep = detect_symmetries(mesh, mesh_diameter(mesh), tol_frac=0.004, near_frac=0.02)
+    assert (rep.tol_frac, rep.near_frac) == (0.004, 0.02)
+    # a faceted prism turns onto itself to sampling accuracy: small, but measured, not 0
+    assert 0.0 < rep.group_residual <= 0.004
 
 
 def test_detection_is_deterministic():
