@@ -17,8 +17,8 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
+from posefuse.estimator.frontend.metrics import match_centers
 from posefuse.estimator.frontend.network import NetworkFrontend
 from posefuse.estimator.objects import load_catalog
 from posefuse.service.resources import DEFAULT_MODEL
@@ -35,17 +35,8 @@ def score_view(detections, rows: np.ndarray, class_of: dict[int, int]) -> tuple[
         rows: (K, 11) the view's instance rows (``sim.train_data.INSTANCE_COLUMNS``).
         class_of: output class index (1..C) -> obj_id.
     """
-    cost = np.full((len(detections), len(rows)), 1e9)
-    for i, d in enumerate(detections):
-        for j, r in enumerate(rows):
-            if class_of[int(r[2])] == d.obj_id:
-                dist = float(np.hypot(*(d.center_uv - r[3:5])))
-                if dist <= MAX_PX:
-                    cost[i, j] = dist
-    matched: set[int] = set()
-    if cost.size:
-        a, b = linear_sum_assignment(cost)
-        matched = {int(j) for i, j in zip(a, b, strict=True) if cost[i, j] < 1e9}
+    obj_ids = [class_of[int(r[2])] for r in rows]
+    matched = set(match_centers(detections, obj_ids, rows[:, 3:5], MAX_PX).values())
     visible = rows[:, 9] > MIN_VISIB
     found = sum(1 for j in matched if visible[j])
     return found, int(visible.sum()), len(matched)
@@ -66,7 +57,10 @@ def main(argv: list[str] | None = None) -> int:
         "never saw, from the same generator)",
     )
     args = parser.parse_args(argv)
-    ts = open_training_set(args.training_set)
+    try:
+        ts = open_training_set(args.training_set)
+    except FileNotFoundError as e:
+        raise SystemExit(f"--training-set: {e}") from None
     spec = ts.meta["spec"]
     catalog = load_catalog(ts.meta["catalog"])
     class_of = {k: obj_id for obj_id, k in class_index(catalog).items()}

@@ -42,9 +42,31 @@ class FrontendScore:
         )
 
 
+def match_centers(dets, obj_ids, truth: np.ndarray, max_px: float = 15.0) -> dict[int, int]:
+    """One-to-one matching of detections to annotated instances of their class by center
+    distance (Hungarian, at most ``max_px``).
+
+    Args:
+        dets: the detections; obj_ids: (N,) the instances' classes; truth: (N, 2) their
+            projected centers, image pixels.
+    Returns:
+        {detection index: instance index}.
+    """
+    cost = np.full((len(dets), len(truth)), 1e9)
+    for i, d in enumerate(dets):
+        for j, obj_id in enumerate(obj_ids):
+            if d.obj_id == obj_id:
+                dist = float(np.linalg.norm(d.center_uv - truth[j]))
+                if dist <= max_px:
+                    cost[i, j] = dist
+    if not cost.size:
+        return {}
+    rows, cols = linear_sum_assignment(cost)
+    return {int(i): int(j) for i, j in zip(rows, cols, strict=True) if cost[i, j] < 1e9}
+
+
 def match_to_truth(dets, view, max_px: float = 15.0):
-    """One-to-one matching of detections to the view's annotated instances of their class by
-    center distance (Hungarian, at most ``max_px``).
+    """:func:`match_centers` against a BOP view's annotated instances.
 
     Returns:
         gts: the annotated instances in front of the camera; truth: (len(gts), 2) their
@@ -52,18 +74,7 @@ def match_to_truth(dets, view, max_px: float = 15.0):
     """
     gts = [g for g in view.gts if g.T_cam_obj[2, 3] > 0]
     truth = np.array([view.camera.project(g.T_cam_obj[:3, 3]) for g in gts]).reshape(-1, 2)
-    cost = np.full((len(dets), len(gts)), 1e9)
-    for i, d in enumerate(dets):
-        for j, g in enumerate(gts):
-            if d.obj_id == g.obj_id:
-                dist = float(np.linalg.norm(d.center_uv - truth[j]))
-                if dist <= max_px:
-                    cost[i, j] = dist
-    pairs = {}
-    if cost.size:
-        rows, cols = linear_sum_assignment(cost)
-        pairs = {int(i): int(j) for i, j in zip(rows, cols, strict=True) if cost[i, j] < 1e9}
-    return gts, truth, pairs
+    return gts, truth, match_centers(dets, [g.obj_id for g in gts], truth, max_px)
 
 
 def score_frontend(dataset, detect, views, min_visib: float = 0.75, max_px: float = 15.0):
