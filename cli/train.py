@@ -34,6 +34,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for root in args.tune:
         if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
+    if args.threads < 1:
+        raise PosefuseError(f"--threads: {args.threads}: must be at least 1")
     config = TrainConfig(
         n_scenes=args.scenes,
         views_per_scene=args.views,
@@ -47,6 +49,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         dihedral=args.dihedral,
         seed=args.seed,
         workers=args.workers,
+        threads=args.threads,
         robi_fraction=args.robi_fraction,
         data_dir=args.data_dir,
         checkpoint=args.checkpoint,
@@ -160,6 +163,12 @@ def register(subparsers) -> None:
         "--fp32", action="store_true", help="train in float32 (default: bfloat16 autocast)"
     )
     p.add_argument("--workers", type=int, default=2, help="rendering processes")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="torch threads of the training loop (1 leaves a core to other work)",
+    )
     p.add_argument(
         "--seed",
         type=int,

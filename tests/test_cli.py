@@ -231,3 +231,11 @@ def test_http_port_zero_picks_a_free_port():
 
     settings = claim_http_port(Settings(http_port=0))
     assert settings.http_port > 0
+
+
+def test_train_rejects_zero_threads_before_any_work(tmp_path, capsys):
+    out = tmp_path / "m.onnx"
+    code = main(["train", "--out", str(out), "--threads", "0", "--data-dir", str(tmp_path)])
+    assert code == 2
+    assert "--threads: 0: must be at least 1" in capsys.readouterr().err
+    assert not out.exists() and not any(tmp_path.iterdir())
