@@ -18,4 +18,4 @@ def test_stage_timer_counts_outermost_calls_only():
     assert [wrapped_outer(i) for i in range(3)] == [2, 4, 6]
     assert wrapped_inner(5) == 6
     assert dict(timer.calls) == {"refinement": 3, "verification": 1}
-    assert timer.seconds["refinement"] >= 0.0 and set(timer.seconds) == {"refinement", "verification"}
+    assert set(timer.seconds) == {"refinement", "verification"}
