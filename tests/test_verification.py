@@ -821,3 +821,29 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
     ref = map_coordinates(maps[1].astype(float), [[4.5], [3.25]], order=1)[0] * truncate / 255
     np.testing.assert_allclose(v2, [ref, truncate, truncate], atol=1e-9)
     np.testing.assert_array_equal(g2[1:], 0.0)
+
+
+def test_sample_maps_reads_its_edges_exactly_and_nothing_past_them():
+    """The bilinear range is [0, L - 1.001] on each axis, both ends included: a sample on the
+    first row or column, or on the last one the interpolation can reach, reads the map; half
+    a pixel further, or a pixel before the first, reads the truncation with no gradient."""
+    from scipy.ndimage import map_coordinates
+
+    from posefuse.estimator.edges import sample_maps
+
+    rng = np.random.default_rng(5)
+    maps = rng.integers(0, 256, size=(2, 10, 14), dtype=np.uint8)
+    truncate = 10.0
+    L_y, L_x = maps.shape[1:]
+    last_u, last_v = L_x - 1.001, L_y - 1.001
+    inside = np.array([[0.0, 3.3], [5.2, 0.0], [last_u, 4.4], [6.1, last_v], [0.0, 0.0]])
+    outside = np.array([[-0.2, 3.3], [5.2, -0.2], [L_x - 0.5, 4.4], [6.1, L_y - 0.5], [6.1, L_y]])
+    for channel in (0, 1):
+        uv = np.concatenate([inside, outside])
+        value, grad = sample_maps(maps, np.full(len(uv), channel), uv, truncate)
+        coords = np.stack([np.full(len(inside), channel), inside[:, 1], inside[:, 0]])
+        expected = map_coordinates(maps.astype(float), coords, order=1) * truncate / 255.0
+        np.testing.assert_allclose(value[: len(inside)], expected, atol=1e-9)
+        np.testing.assert_array_equal(value[len(inside) :], truncate)
+        np.testing.assert_array_equal(grad[len(inside) :], 0.0)
+        assert np.all(np.isfinite(grad))
