@@ -111,6 +111,11 @@ def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> M
     angles = mesh.face_adjacency_angles  # (E,)
     keep = angles > np.deg2rad(1.0)
     adjacency, edges, angles = adjacency[keep], edges[keep], angles[keep]
+    if not len(edges):  # no two faces meet at an angle: nothing for the edges to say
+        empty = np.zeros((0, 3))
+        return ModelEdges(
+            empty, empty, np.zeros((0, 2, 3)), np.zeros(0, bool), float(diameter), mesh
+        )
     a = mesh.vertices[edges[:, 0]]
     b = mesh.vertices[edges[:, 1]]
     length = np.linalg.norm(b - a, axis=1)
@@ -283,6 +288,9 @@ def edge_view(
         image: (H, W, 3) uint8 RGB. K: (3, 3). T_cam_world: (4, 4). t_cam_obj: (3,) metres,
         z > 0. mask: (H, W) bool visible mask of the instance, or None.
     """
+    # OpenCV's warp crashes the process on a map with NaN or inf in it: refuse them here
+    if not (np.all(np.isfinite(t_cam_obj)) and np.all(np.isfinite(K)) and np.isfinite(diameter)):
+        raise ValueError("edge_view: K, t_cam_obj and diameter must be finite")
     if t_cam_obj[2] <= 0:
         raise ValueError(f"edge_view: the part is behind the camera (z = {t_cam_obj[2]:.3f} m)")
     L = config.roi_size

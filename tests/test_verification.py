@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 import trimesh
@@ -769,6 +770,10 @@ def test_the_directional_chamfer_of_a_rectangle():
     # the vertical bin: the nearest vertical edge is 30 px away, beyond the truncation
     assert read[4] == pytest.approx(config.truncate_px)
     assert view.mask_dt[y, x] * config.truncate_px / 255.0 == pytest.approx(3.0, abs=1.05)
+    # the mask's boundary is its outermost ring of pixels: 3 px inside each side reads 3 px
+    for inside in ([100.0, 83.0], [100.0, 117.0], [73.0, 100.0], [127.0, 100.0]):
+        x, y = (np.array(inside) + shift).round().astype(int)
+        assert view.mask_dt[y, x] * config.truncate_px / 255.0 == pytest.approx(3.0, abs=0.05)
     # 3 columns inside the left edge, the vertical bin reads 3 px and the horizontal one is far
     x, y = (np.array([73.0, 100.0]) + shift).round().astype(int)
     read = view.dcdt[:, y, x] * config.truncate_px / 255.0
@@ -787,8 +792,21 @@ def test_edge_maps_see_no_edge_where_the_image_ends():
     t_cam = np.array([-0.054, -0.0375, 0.5])  # projects 15 px from the top-left corner
     view = edge_view(image, K, np.eye(4), t_cam, 0.05, config)
     assert np.all(view.dcdt == 255)
+    assert view.mask_dt is None and view.stamp_ns == 0  # no mask given: no mask map
+    # an empty mask has no boundary, in the image or past its end
+    masked = edge_view(image, K, np.eye(4), t_cam, 0.05, config, np.zeros((120, 160), bool), 77)
+    assert np.all(masked.mask_dt == 255) and masked.stamp_ns == 77
     with pytest.raises(ValueError, match="behind the camera"):
         edge_view(image, K, np.eye(4), np.array([0.0, 0.0, 0.0]), 0.05, config)
+    # a NaN or inf would reach OpenCV's warp, which crashes the process on it
+    for t_bad, K_bad, d_bad in (
+        ([np.nan, 0.0, 0.5], K, 0.05),
+        ([0.0, 0.0, np.inf], K, 0.05),
+        ([0.0, 0.0, 0.5], np.where(np.eye(3) == 1, np.nan, K), 0.05),
+        ([0.0, 0.0, 0.5], K, np.inf),
+    ):
+        with pytest.raises(ValueError, match="must be finite"):
+            edge_view(image, K_bad, np.eye(4), np.array(t_bad), d_bad, config)
 
 
 def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
@@ -816,6 +834,10 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
         up, _ = sample_maps(maps, channel, uv + step, truncate)
         down, _ = sample_maps(maps, channel, uv - step, truncate)
         np.testing.assert_allclose(grad[inner, axis], ((up - down) / (2 * h))[inner], atol=1e-6)
+    # any batch shape: (2, 100, 2) samples read what the 200 read
+    v3, g3 = sample_maps(maps, channel.reshape(2, 100), uv.reshape(2, 100, 2), truncate)
+    np.testing.assert_array_equal(v3, value.reshape(2, 100))
+    np.testing.assert_array_equal(g3, grad.reshape(2, 100, 2))
     # one map without channels; outside it reads the truncation with no gradient
     v2, g2 = sample_maps(maps[1], None, np.array([[3.25, 4.5], [-1.0, 2.0], [15.5, 2.0]]), truncate)
     ref = map_coordinates(maps[1].astype(float), [[4.5], [3.25]], order=1)[0] * truncate / 255
@@ -847,3 +869,101 @@ def test_sample_maps_reads_its_edges_exactly_and_nothing_past_them():
         np.testing.assert_array_equal(value[len(inside) :], truncate)
         np.testing.assert_array_equal(grad[len(inside) :], 0.0)
         assert np.all(np.isfinite(grad))
+
+
+def _sharp_edges_end_to_end(mesh):
+    """(a, b, cumulative length) of the mesh's edges where faces meet at more than 1 degree,
+    in trimesh's order: the chain model_edges lays its samples along."""
+    keep = mesh.face_adjacency_angles > np.deg2rad(1.0)
+    ends = mesh.face_adjacency_edges[keep]
+    a, b = mesh.vertices[ends[:, 0]], mesh.vertices[ends[:, 1]]
+    return a, b, np.cumsum(np.linalg.norm(b - a, axis=1))
+
+
+@pytest.mark.parametrize("max_points", [2000, 100])
+def test_model_edges_lie_evenly_along_the_sharp_edges_laid_end_to_end(max_points):
+    """A box's 12 edges (its face diagonals are flat and carry none): sample i lies at arc
+    length (i + 1/2) L / n of the chain, n = ceil(L / (d / 80)) or max_points, with its edge's
+    unit direction, its two faces' normals, and the box's right angles marked as creases."""
+    import trimesh
+
+    from posefuse.estimator.edges import EdgeConfig, model_edges
+
+    mesh = trimesh.creation.box(extents=(0.1, 0.07, 0.03))
+    diameter = 0.123
+    edges = model_edges(mesh, diameter, EdgeConfig(max_points=max_points))
+    a, b, cum = _sharp_edges_end_to_end(mesh)
+    assert len(cum) == 12 and cum[-1] == pytest.approx(0.8)
+    n = min(max_points, int(np.ceil(cum[-1] / (diameter / 80))))  # 521 at 2000
+    assert len(edges.points) == n
+    s = (np.arange(n) + 0.5) * cum[-1] / n
+    j = np.searchsorted(cum, s)
+    start = np.concatenate([[0.0], cum[:-1]])[j]
+    seg = b[j] - a[j]
+    length = np.linalg.norm(seg, axis=1)
+    want = a[j] + ((s - start) / length)[:, None] * seg
+    np.testing.assert_allclose(edges.points, want, atol=1e-12)
+    np.testing.assert_allclose(edges.directions, seg / length[:, None], atol=1e-12)
+    # the two faces at each sample are the box's faces through that edge: unit, at right angles
+    np.testing.assert_allclose(np.linalg.norm(edges.normals, axis=2), 1.0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.einsum("pi,pi->p", edges.normals[:, 0], edges.normals[:, 1]), 0.0, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.einsum("pki,pi->pk", edges.normals, edges.directions), 0.0, atol=1e-12
+    )
+    assert edges.crease.all()
+    # a part far smaller than the diameter it is given still gets one sample
+    assert len(model_edges(mesh, 1e3, EdgeConfig()).points) == 1
+
+
+def test_model_edges_keep_a_fold_of_one_and_a_half_degrees_and_no_flat_one():
+    """The 1-degree rule: two triangles folded by 1.5 degrees meet at an edge that is sampled
+    (and not a crease); folded by 0.5 degrees, or flat, they give no samples at all."""
+    import trimesh
+
+    from posefuse.estimator.edges import EdgeConfig, model_edges, pose_edges
+
+    def fold(deg):
+        a = np.deg2rad(deg)
+        v = [[0, 0, 0], [0.1, 0, 0], [0.05, 0.05, 0], [0.05, -0.05 * np.cos(a), 0.05 * np.sin(a)]]
+        return trimesh.Trimesh(np.array(v, float), np.array([[0, 1, 2], [1, 0, 3]]), process=False)
+
+    edges = model_edges(fold(1.5), 0.1, EdgeConfig())
+    assert len(edges.points) == 80  # the 0.1 m fold, every d / 80
+    np.testing.assert_allclose(edges.points[:, 1:], 0.0, atol=1e-12)
+    assert not edges.crease.any()
+    for deg in (0.5, 0.0):
+        flat = model_edges(fold(deg), 0.1, EdgeConfig())
+        assert flat.points.shape == (0, 3) and flat.normals.shape == (0, 2, 3)
+        _, _, active, contour = pose_edges(flat, np.eye(3)[None], np.array([[0.0, 0.0, 0.5]]))
+        assert active.shape == contour.shape == (1, 0)
+
+
+def test_edge_orientation_bins_follow_a_circle():
+    """A bright disc seen 1:1: where the circle's tangent lies at a bin's centre, the edge pixel
+    on that ray is in that bin (the gradient's direction from first derivatives in x and y,
+    signed: every orientation, not only the axis-aligned ones of a rectangle)."""
+    from posefuse.estimator.edges import EdgeConfig
+
+    config = EdgeConfig()
+    image = np.zeros((200, 200, 3), np.uint8)
+    cv2.circle(image, (100, 100), 25, (200, 200, 200), -1, lineType=cv2.LINE_AA)
+    K = np.array([[600.0, 0.0, 100.0], [0.0, 600.0, 100.0], [0.0, 0.0, 1.0]])
+    view = edge_view(image, K, np.eye(4), np.array([0.0, 0.0, 0.5]), 0.05, config)
+    center = np.array([100.0, 100.0]) + view.K_roi[:2, 2] - K[:2, 2]
+    d = view.dcdt.astype(float) * config.truncate_px / 255.0
+    for k in range(2 * config.bins):
+        phi = k * np.pi / config.bins  # the ray's direction; the tangent is a quarter turn on
+        want = (k + config.bins // 2) % config.bins
+        ray = center + np.arange(20, 31)[:, None] * [np.cos(phi), np.sin(phi)]
+        x, y = np.round(ray).astype(int).T
+        edge = int(np.argmin(d[:, y, x].min(axis=0)))  # the edge pixel along the ray
+        assert d[:, y[edge], x[edge]].min() <= 1.05
+        assert int(np.argmin(d[:, y[edge], x[edge]])) == want, (k, d[:, y[edge], x[edge]])
+    # a fainter disc (contrast 24 of 255) is below Canny's threshold at every orientation: the
+    # gradient's Euclidean magnitude (|g|_1 would pass it where the edge runs diagonally)
+    faint = np.full((200, 200, 3), 60, np.uint8)
+    cv2.circle(faint, (100, 100), 25, (84, 84, 84), -1, lineType=cv2.LINE_AA)
+    view = edge_view(faint, K, np.eye(4), np.array([0.0, 0.0, 0.5]), 0.05, config)
+    assert np.all(view.dcdt == 255)
