@@ -21,7 +21,13 @@ EXPECTED = Path(DEFAULT_RECORDING).with_suffix(".expected.json")
 # crop model and its card, in that order): another model gives other estimates; its replay is
 # still held to the ground-truth floor below
 EXPECTED_MODEL_SHA256 = "d2251429e0a7862a1b89d72e10a1da264ccd67182b9c23693d5ed835a563d61d"
-# share of confirmed estimates within ADD-sym 0.1 d of a true part: 25 of 30 in the expected
+# the front end's detections (class, center u, v) of the recording's first frames on the
+# machine that wrote the expected file: where this machine's network computes them otherwise
+# (onnxruntime's kernels differ with the CPU's features), the discrete choices downstream
+# (template ties, mixture pruning) can differ too, and the expected file cannot be matched
+EXPECTED_FRONTEND = EXPECTED.with_name(EXPECTED.stem + "_frontend.json")
+FRONTEND_FRAMES = 3
+# share of confirmed estimates within ADD-sym 0.1 d of a true part: 26 of 30 in the expected
 # file; a replay below half of its confirmed estimates right is broken
 FLOOR = 0.5
 MIN_CORRECT = 12
@@ -42,6 +48,38 @@ def _truth() -> list[list[tuple[int, np.ndarray]]]:
     if current is not None:
         segments.append(current)
     return segments
+
+
+def frontend_fingerprint() -> list[list[list[float]]]:
+    """Per frame, the first FRONTEND_FRAMES images' detections as [obj_id, u, v], as the daemon
+    computes them (the shipped model, its default threads, the stamp as the voting's seed)."""
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.service.codec import decoders
+
+    decode = decoders()["image"]
+    network = NetworkFrontend(
+        DEFAULT_MODEL, load_catalog(DEFAULT_CATALOG), threads=Settings().onnx_threads
+    )
+    frames = []
+    for m in read_messages(DEFAULT_RECORDING):
+        if m.key.endswith("/image"):
+            msg = decode(m.payload)
+            dets = network.detect(msg.image, stamp_seed=msg.stamp_ns)
+            frames.append([[float(d.obj_id), *map(float, d.center_uv)] for d in dets])
+            if len(frames) == FRONTEND_FRAMES:
+                break
+    return frames
+
+
+def _same_frontend() -> bool:
+    """Whether this machine's front end gives the expected file's machine's detections (to
+    1e-4 px) on the first frames."""
+    want = json.loads(EXPECTED_FRONTEND.read_text())
+    got = frontend_fingerprint()
+    return len(got) == len(want) and all(
+        len(g) == len(w) and np.allclose(g, w, rtol=0, atol=1e-4)
+        for g, w in zip(got, want, strict=True)
+    )
 
 
 def _score(segments: list[list[dict]]) -> tuple[int, int, float]:
@@ -137,9 +175,23 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
     if shipped != EXPECTED_MODEL_SHA256:
         pytest.skip(
             f"{EXPECTED} was made with another model than {DEFAULT_MODEL}: regenerate it with "
-            "`posefuse replay recordings/demo.mcap --offline --out DIR` (the replay met the floor)"
+            "`posefuse replay recordings/demo.mcap --offline --out DIR` and its front end's "
+            f"{EXPECTED_FRONTEND.name} with `python tests/test_demo_replay.py` (the replay met "
+            "the floor)"
         )
     expected = json.loads(EXPECTED.read_text())
+    if not _same_frontend():
+        # another machine's network: hold the replay to the expected file's score instead
+        correct, confirmed = _score(got["segments"])[:2]
+        want_correct, want_confirmed = _score(expected["segments"])[:2]
+        assert abs(correct - want_correct) <= 3 and abs(confirmed - want_confirmed) <= 3, (
+            f"{correct} of {confirmed} right, the expected file {want_correct} of {want_confirmed}"
+        )
+        pytest.skip(
+            "this machine's front end differs from the expected file's in the last bits "
+            f"({EXPECTED_FRONTEND.name}): scored against the truth only, {correct} of "
+            f"{confirmed} right against the expected file's {want_correct} of {want_confirmed}"
+        )
     assert len(got["updates"]) == len(expected["updates"])
     assert len(got["segments"]) == len(expected["segments"])
     for g_seg, e_seg in zip(got["segments"], expected["segments"], strict=True):
@@ -203,3 +255,9 @@ def test_live_lockstep_replay_over_zenoh_equals_offline(default_banks, capsys):
             assert a["status"] == b["status"] and a["n_views"] == b["n_views"]
             np.testing.assert_allclose(a["t"], b["t"], atol=1e-6)
             np.testing.assert_allclose(a["q"], b["q"], atol=1e-6)
+
+
+if __name__ == "__main__":
+    # the front end's fingerprint beside a regenerated expected file, on the same machine
+    EXPECTED_FRONTEND.write_text(json.dumps(frontend_fingerprint()) + "\n")
+    print(f"wrote {EXPECTED_FRONTEND}")
