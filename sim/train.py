@@ -360,10 +360,11 @@ def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> 
     return out
 
 
-def calibrate(model_path: Path, val: TrainingSet, seed: int = 0) -> tuple[float, dict]:
+def calibrate(model_path: Path, val: TrainingSet, catalog, seed: int = 0) -> tuple[float, dict]:
     """The covariance scale that makes the mean NEES of matched centers 2 on held-out renders
-    (the model's card read with scale 1), and validation figures."""
-    catalog = load_catalog(val.meta["catalog"])
+    (the model's card read with scale 1), and validation figures. ``catalog`` is the one being
+    trained: a rendered set is shared by every copy of the same catalog (its folder is named by
+    the catalog's hash), so the path it was rendered from may be gone."""
     card_path = model_path.with_suffix(".json")
     data = json.loads(card_path.read_text())
     data["voting_cov_scale"] = 1.0
@@ -558,7 +559,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     nets.det.eval()
     nets.crop.eval()
     checkpoint(final=True)
-    cov_scale, val_metrics = calibrate(model_path, val, config.seed)
+    cov_scale, val_metrics = calibrate(model_path, val, catalog, config.seed)
     account()
     extra = {
         "architecture": (
