@@ -34,6 +34,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for root in args.tune:
         if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
+    if args.crop_width is not None and args.crop_width < 1:
+        raise PosefuseError(f"--crop-width: {args.crop_width}: must be at least 1")
     if args.threads < 1:
         raise PosefuseError(f"--threads: {args.threads}: must be at least 1")
     config = TrainConfig(
@@ -45,6 +47,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         batch=args.batch,
         crop_batch=args.crop_batch,
         lr=args.lr,
+        crop_width=args.crop_width,
         crop_box_channel=args.box_channel,
         dihedral=args.dihedral,
         seed=args.seed,
@@ -98,6 +101,14 @@ def register(subparsers) -> None:
     p.add_argument("--batch", type=int, default=16, help="detector crops per step")
     p.add_argument(
         "--lr", type=float, default=2e-3, help="peak learning rate of the schedule (AdamW)"
+    )
+    p.add_argument(
+        "--crop-width",
+        type=int,
+        default=None,
+        help="stage two's width (default: the detector's, 16); with --init from a narrower "
+        "checkpoint, a multiple of its width: the network is widened so that it starts "
+        "computing what the narrower one did",
     )
     p.add_argument(
         "--box-channel",

@@ -133,3 +133,50 @@ class CropVotingNet(nn.Module):
         vec = out[:, 1:]
         vec = vec / torch.sqrt((vec * vec).sum(1, keepdim=True) + 1e-6)
         return torch.cat([out[:, :1], vec], 1)
+
+
+def widen_state(
+    old: dict[str, torch.Tensor],
+    new: dict[str, torch.Tensor],
+    noise: float = 0.0,
+    seed: int = 0,
+) -> tuple[dict[str, torch.Tensor], list[str]]:
+    """A wider network's state that computes what the narrower one did (Net2WiderNet).
+
+    ``old`` is a state dict of one of the networks above at width w, ``new`` the same network's
+    at width k * w (for an integer k): every channel c of the wider network copies channel
+    c mod (its old count), and a convolution's weights on a widened input are divided by k, so
+    that the k copies of an input channel sum to the original. Batch-norm statistics and
+    affine parameters are copied alike. Each widened convolution gets Gaussian noise of
+    ``noise`` times its own weights' standard deviation (seeded), or the k copies of a channel
+    would receive equal gradients and stay equal; ``noise=0`` preserves the function exactly
+    (in eval mode).
+
+    Shapes: conv weights (C_out, C_in, kh, kw), the rest (C,). A tensor whose size in a
+    dimension is not a multiple of the old one is not widened there; returns the state and the
+    names of the tensors left as ``new`` had them (no counterpart, or incompatible shapes).
+    """
+    gen = torch.Generator().manual_seed(seed)
+    out = dict(new)
+    kept_fresh = []
+    for name, target in new.items():
+        if name not in old:
+            kept_fresh.append(name)
+            continue
+        src = old[name]
+        if src.shape == target.shape:
+            out[name] = src.clone()
+            continue
+        if src.ndim != target.ndim or any(
+            t % s for s, t in zip(src.shape, target.shape, strict=True)
+        ):
+            kept_fresh.append(name)
+            continue
+        reps = [t // s for s, t in zip(src.shape, target.shape, strict=True)]
+        w = src.repeat(*reps)
+        if src.ndim == 4 and reps[1] > 1:
+            w = w / reps[1]
+        if noise > 0 and src.ndim == 4:
+            w = w + noise * float(src.float().std()) * torch.randn(w.shape, generator=gen)
+        out[name] = w.to(target.dtype)
+    return out, kept_fresh

@@ -74,6 +74,7 @@ class TrainConfig:
     lr: float = 2e-3
     warmup: int = 500
     width: int = 16
+    crop_width: int | None = None  # stage two's width (None: ``width``)
     crop_box_channel: bool = False  # stage two gets the box as a fourth input channel
     dihedral: bool = False  # flips upside down and transposes besides mirrors (train_targets)
     seed: int = 0
@@ -93,6 +94,10 @@ class TrainConfig:
     restarts: tuple[tuple[int, int, float], ...] = ()
     extend: tuple[int, float] | None = None  # with ``resume``: (steps, peak lr) of one more restart
     extra: dict = field(default_factory=dict)
+
+    @property
+    def stage_two_width(self) -> int:
+        return self.crop_width or self.width
 
     @property
     def total_steps(self) -> int:
@@ -133,6 +138,7 @@ _STREAM_FIELDS = (
     "lr",
     "warmup",
     "width",
+    "crop_width",
     "crop_box_channel",
     "dihedral",
     "seed",
@@ -158,7 +164,7 @@ class _Nets:
         self.config = config
         self.n_classes = n_classes
         self.det = BoxDetectorNet(n_classes, config.width)
-        self.crop = CropVotingNet(config.width, config.crop_box_channel)
+        self.crop = CropVotingNet(config.stage_two_width, config.crop_box_channel)
         if config.bf16:
             self.det = self.det.to(memory_format=torch.channels_last)
             self.crop = self.crop.to(memory_format=torch.channels_last)
@@ -241,8 +247,12 @@ class _Nets:
 
     def init_from(self, state: dict) -> list[str]:
         """Start from another checkpoint's weights: everything but the class heatmaps (the one
-        class-specific head) when the class count differs, and stage two's first layer widened
-        with zeros when this one adds the box channel; returns the layers left fresh."""
+        class-specific head) when the class count differs; stage two's first layer widened
+        with zeros when this one adds the box channel, and stage two widened by an integer
+        factor (``sim.net.widen_state``: it begins computing what the narrower one did, up to
+        1% noise that lets the copies of a channel part); returns the layers left fresh."""
+        from posefuse.sim.net import widen_state
+
         torch = self.torch
         det = self.det.state_dict()
         fresh = []
@@ -253,17 +263,21 @@ class _Nets:
                 fresh.append(k)
         self.det.load_state_dict(det)
         crop = self.crop.state_dict()
-        for k, v in state["crop"].items():
-            if v.ndim == 4 and crop[k].shape[1] > v.shape[1] and crop[k].shape[0] == v.shape[0]:
+        old = dict(state["crop"])
+        for k, v in old.items():
+            if v.ndim == 4 and v.shape[1] == 3 and crop[k].shape[1] == 4:
                 # a stage two without the box channel: its weights for the new input start at
                 # zero, so the network begins as the one it comes from
-                w = torch.zeros_like(crop[k])
-                w[:, : v.shape[1]] = v
-                crop[k] = w
+                old[k] = torch.cat([v, torch.zeros_like(v[:, :1])], 1)
                 fresh.append(f"crop.{k} (box channel)")
-            else:
-                crop[k] = v
-        self.crop.load_state_dict(crop)
+        widened = [k for k, v in old.items() if k in crop and crop[k].shape != v.shape]
+        loaded, left = widen_state(old, crop, noise=0.01, seed=self.config.seed)
+        fresh += [f"crop.{k}" for k in left]
+        if widened:
+            fresh.append(
+                f"stage two widened to width {self.config.stage_two_width} ({len(widened)} tensors)"
+            )
+        self.crop.load_state_dict(loaded)
         return fresh
 
     def export(self, model_path: Path, card: ModelCard) -> None:
@@ -424,8 +438,10 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS and k not in ("restarts", "crop_box_channel", "dihedral")
+                if k in _STREAM_FIELDS
+                and k not in ("restarts", "crop_box_channel", "dihedral", "crop_width")
             },
+            crop_width=stored.get("crop_width"),
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
             crop_box_channel=bool(stored.get("crop_box_channel", False)),
             # a checkpoint older than the option was trained without it
@@ -448,10 +464,20 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     if config.init and state is None:
         base = torch.load(config.init, map_location="cpu", weights_only=False)
         stored = base.get("config", {})
-        # a fine-tune keeps the architecture it starts from (and may add the box channel)
+        # a fine-tune keeps the architecture it starts from (and may add the box channel, or
+        # widen stage two by an integer factor: ``init_from``)
+        base_width = int(stored.get("width", config.width))
+        base_crop_width = int(stored.get("crop_width") or base_width)
+        crop_width = config.crop_width or base_crop_width
+        if crop_width % base_crop_width:
+            raise ValueError(
+                f"--crop-width {crop_width}: must be a multiple of {config.init}'s stage-two "
+                f"width {base_crop_width}"
+            )
         config = dataclasses.replace(
             config,
-            width=int(stored.get("width", config.width)),
+            width=base_width,
+            crop_width=crop_width if crop_width != base_width else None,
             crop_box_channel=bool(stored.get("crop_box_channel")) or config.crop_box_channel,
         )
     nets = _Nets(len(catalog), config)
@@ -565,7 +591,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         "architecture": (
             f"two stages: BoxDetectorNet(width={config.width}) "
             f"{sum(p.numel() for p in nets.det.parameters())} parameters, "
-            f"CropVotingNet(width={config.width}, box_channel={config.crop_box_channel}) "
+            f"CropVotingNet(width={config.stage_two_width}, box_channel={config.crop_box_channel}) "
             f"{sum(p.numel() for p in nets.crop.parameters())} parameters"
         ),
         "training": {

@@ -101,6 +101,84 @@ def test_stage_two_widened_for_the_box_channel_starts_as_the_one_it_comes_from(t
         assert not torch.allclose(base.crop(x), wide.crop(torch.cat([x, box], 1)), atol=1e-3)
 
 
+def test_a_widened_stage_two_starts_as_the_narrow_one_and_its_copies_can_part(tmp_path):
+    from posefuse.sim.net import CropVotingNet, widen_state
+    from posefuse.sim.train import _Nets
+
+    torch.manual_seed(3)
+    narrow = CropVotingNet(8)
+    narrow.train()
+    with torch.no_grad():  # batch-norm statistics that are not the defaults
+        for _ in range(3):
+            narrow(torch.randn(4, 3, 32, 32))
+    narrow.eval()
+    wide = CropVotingNet(16)
+    state, fresh = widen_state(narrow.state_dict(), wide.state_dict(), noise=0.0)
+    assert fresh == []
+    wide.load_state_dict(state)
+    wide.eval()
+    x = torch.randn(2, 3, 32, 32, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        assert torch.allclose(narrow(x), wide(x), atol=1e-5)
+    w = state["backbone.enc2.0.0.weight"]  # (32, 16, 3, 3) from (16, 8, 3, 3)
+    assert w.shape == (32, 16, 3, 3)
+    assert torch.equal(w[:16, :8], w[16:, 8:])  # copies of a channel, exactly
+    # the noise parts the copies, seeded, and moves the output little
+    noisy, _ = widen_state(narrow.state_dict(), wide.state_dict(), noise=0.01, seed=1)
+    again, _ = widen_state(narrow.state_dict(), wide.state_dict(), noise=0.01, seed=1)
+    w = noisy["backbone.enc2.0.0.weight"]
+    assert not torch.equal(w[:16, :8], w[16:, 8:])
+    assert all(torch.equal(noisy[k], again[k]) for k in noisy)
+    wide.load_state_dict(noisy)
+    wide.eval()
+    with torch.no_grad():
+        diff = (narrow(x) - wide(x)).abs().max()
+    assert 0 < float(diff) < 0.1
+    # a width that is not a multiple is left as the new network had it, and said
+    odd = CropVotingNet(12)
+    _, fresh = widen_state(narrow.state_dict(), odd.state_dict())
+    assert "backbone.enc2.0.0.weight" in fresh
+    # through fine-tuning: --crop-width 16 from a width-8 checkpoint
+    base = _Nets(5, _config(tmp_path, bf16=False, width=8))
+    wider = _Nets(5, _config(tmp_path, bf16=False, width=8, crop_width=16, seed=1))
+    said = wider.init_from({"det": base.det.state_dict(), "crop": base.crop.state_dict()})
+    assert said == ["stage two widened to width 16 (62 tensors)"]
+    base.crop.eval(), wider.crop.eval()
+    with torch.no_grad():
+        assert torch.allclose(base.crop(x), wider.crop(x), atol=0.1)
+        assert wider.crop(x).shape == base.crop(x).shape
+
+
+def test_a_fine_tune_widens_stage_two_and_the_checkpoint_remembers_it(tmp_path):
+    out = tmp_path / "base" / "m.onnx"
+    train(DEFAULT_CATALOG, out, _config(tmp_path, width=8, max_iterations=2))
+    wide = tmp_path / "wide" / "m.onnx"
+    card = train(
+        DEFAULT_CATALOG,
+        wide,
+        _config(tmp_path, init=str(tmp_path / "base" / "m.ckpt"), crop_width=16, max_iterations=2),
+    )
+    assert "CropVotingNet(width=16" in card["architecture"]
+    assert "BoxDetectorNet(width=8)" in card["architecture"]
+    w, state = _weights(tmp_path / "wide" / "m.ckpt")
+    assert state["config"]["width"] == 8 and state["config"]["crop_width"] == 16
+    assert w["crop.backbone.enc1.0.0.weight"].shape[0] == 16
+    # a resume keeps the widths whatever it is told
+    train(
+        DEFAULT_CATALOG,
+        wide,
+        _config(tmp_path, resume=str(tmp_path / "wide" / "m.ckpt"), extend=(1, 1e-3)),
+    )
+    w, state = _weights(tmp_path / "wide" / "m.ckpt")
+    assert state["config"]["crop_width"] == 16 and state["step"] == 3
+    with pytest.raises(ValueError, match="crop-width 12"):
+        train(
+            DEFAULT_CATALOG,
+            tmp_path / "odd" / "m.onnx",
+            _config(tmp_path, init=str(tmp_path / "base" / "m.ckpt"), crop_width=12),
+        )
+
+
 def test_a_warm_restart_repeats_the_schedule_from_its_own_peak():
     config = TrainConfig(max_iterations=100, warmup=10, lr=2e-3).extended(50, 1e-3)
     assert config.total_steps == 150 and config.restarts == ((100, 150, 1e-3),)
