@@ -26,12 +26,14 @@ from posefuse.estimator.errors import PosefuseError
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.two_stage import (
     Box,
+    CropVote,
     TwoStageConfig,
     box_masks,
     crop_boxes,
     decode_boxes,
+    detection_of,
     suppress_duplicates,
-    vote_in_crop,
+    vote_center,
 )
 from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
 
@@ -334,14 +336,21 @@ class NetworkFrontend:
         config = self.two_stage
         boxes = self.boxes(image)
         rng = np.random.default_rng([self.seed, stamp_seed])
-        dets = self.stage_two(image, boxes, rng)
+        votes = self.stage_two_votes(image, boxes, rng)
         for _ in range(config.refine_passes):
             # crop again around each voted center: the part is then the one the crop is
             # centred on, as stage two was trained to expect
-            kept = [(b, d) for b, d in zip(boxes, dets, strict=True) if d is not None]
-            boxes = [Box(b.class_index, d.center_uv, b.size, b.score) for b, d in kept]
-            again = self.stage_two(image, boxes, rng)
-            dets = [a if a is not None else d for a, (_, d) in zip(again, kept, strict=True)]
+            kept = [(b, v) for b, v in zip(boxes, votes, strict=True) if v is not None]
+            boxes = [Box(b.class_index, v.center, b.size, b.score) for b, v in kept]
+            again = self.stage_two_votes(image, boxes, rng)
+            votes = [a if a is not None else v for a, (_, v) in zip(again, kept, strict=True)]
+        # masks only for the last pass's votes (drawing them was a third of stage two's time)
+        obj_ids = [k for k, _ in self.card.classes]
+        dets = [
+            detection_of(v, image.shape[:2], obj_ids[b.class_index])
+            for b, v in zip(boxes, votes, strict=True)
+            if v is not None
+        ]
         dets = [
             d
             for d in dets
@@ -355,29 +364,27 @@ class NetworkFrontend:
         config = self.two_stage
         return decode_boxes(self.infer(image), input_scale_for(image.shape[:2], self.card), config)
 
-    def stage_two(self, image: np.ndarray, boxes: list[Box], rng) -> list[Detection | None]:
-        """Stage two of a two-stage model, one pass: one detection (or None) per box, before
-        the refinement pass, the spread filter and duplicate suppression."""
+    def stage_two_votes(self, image: np.ndarray, boxes: list[Box], rng) -> list[CropVote | None]:
+        """Stage two of a two-stage model, one pass: each box's center vote (or None), without
+        its mask."""
         if not boxes:
             return []
         config = self.two_stage
         crops, transforms = crop_boxes(image, boxes, config)
         masks = box_masks(boxes, transforms, config) if config.box_channel else None
         outs = self.crop_infer(crops, masks)
+        return [
+            vote_center(out, a, b, box.score, self.voting, config, rng)
+            for box, (a, b), out in zip(boxes, transforms, outs, strict=True)
+        ]
+
+    def stage_two(self, image: np.ndarray, boxes: list[Box], rng) -> list[Detection | None]:
+        """Stage two of a two-stage model, one pass: one detection (or None) per box, before
+        the refinement pass, the spread filter and duplicate suppression."""
         obj_ids = [k for k, _ in self.card.classes]
         return [
-            vote_in_crop(
-                out,
-                a,
-                b,
-                image.shape[:2],
-                obj_ids[box.class_index],
-                box.score,
-                self.voting,
-                config,
-                rng,
-            )
-            for box, (a, b), out in zip(boxes, transforms, outs, strict=True)
+            None if v is None else detection_of(v, image.shape[:2], obj_ids[box.class_index])
+            for box, v in zip(boxes, self.stage_two_votes(image, boxes, rng), strict=True)
         ]
 
 

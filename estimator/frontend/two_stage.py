@@ -107,18 +107,32 @@ def box_masks(boxes: list[Box], transforms: list, config: TwoStageConfig) -> np.
     )
 
 
-def vote_in_crop(
+@dataclass(frozen=True, eq=False)
+class CropVote:
+    """What one crop's vote found, before its mask is drawn: center (2,) and cov (2, 2) in
+    image pixels; cells (n, 2) int, the output cells (x, y) of the part's pixels; score; the
+    crop's output-cell transform (image = a_out * cell + b_out) and grid side g."""
+
+    center: np.ndarray
+    cov: np.ndarray
+    cells: np.ndarray
+    score: float
+    a_out: float
+    b_out: np.ndarray
+    g: int
+
+
+def vote_center(
     crop_out: np.ndarray,
     a: float,
     b: np.ndarray,
-    image_hw: tuple[int, int],
-    obj_id: int,
     box_score: float,
     voting: VotingConfig,
     config: TwoStageConfig,
     rng: np.random.Generator,
-) -> Detection | None:
-    """The detection one crop's output gives, or None when it holds no part.
+) -> CropVote | None:
+    """The center one crop's output gives, or None when it holds no part (the refinement pass
+    needs no more than this; :func:`detection_of` draws the mask).
 
     Args:
         crop_out: (3, g, g) object logit and unit vectors on the crop's output grid.
@@ -142,13 +156,26 @@ def vote_in_crop(
     # output cell -> crop pixel -> image pixel
     a_out = a * config.crop_stride
     b_out = b + a * 0.5 * (config.crop_stride - 1)
-    center = a_out * inst.center + b_out
-    cov = inst.cov * a_out**2
-    H, W = image_hw
     members = pix[inst.pixels].astype(int)
+    fg = 1.0 / (1.0 + np.exp(-logit[members[:, 1], members[:, 0]].astype(np.float64)))
+    return CropVote(
+        a_out * inst.center + b_out,
+        inst.cov * a_out**2,
+        members,
+        float(box_score * fg.mean()),
+        float(a_out),
+        np.asarray(b_out, float),
+        g,
+    )
+
+
+def detection_of(vote: CropVote, image_hw: tuple[int, int], obj_id: int) -> Detection | None:
+    """The detection of a crop's vote, with its mask in image pixels (each output cell covers
+    a_out x a_out image pixels around its center), or None when the mask leaves the image."""
+    a_out, b_out, g = vote.a_out, vote.b_out, vote.g
+    H, W = image_hw
     cell = np.zeros((g, g), np.uint8)
-    cell[members[:, 1], members[:, 0]] = 1
-    # the mask in image pixels: each cell covers a_out x a_out image pixels around its center
+    cell[vote.cells[:, 1], vote.cells[:, 0]] = 1
     x0 = max(int(np.floor(b_out[0] - a_out / 2)), 0)
     y0 = max(int(np.floor(b_out[1] - a_out / 2)), 0)
     x1 = min(int(np.ceil(b_out[0] + a_out * (g - 0.5))), W)
@@ -167,9 +194,29 @@ def vote_in_crop(
     bbox = np.array(
         [x0 + mx.min(), y0 + my.min(), mx.max() - mx.min() + 1, my.max() - my.min() + 1], float
     )
-    fg = 1.0 / (1.0 + np.exp(-logit[members[:, 1], members[:, 0]].astype(np.float64)))
-    score = float(box_score * fg.mean())
-    return Detection(obj_id, bbox, center, cov, mask, score)
+    return Detection(obj_id, bbox, vote.center, vote.cov, mask, vote.score)
+
+
+def vote_in_crop(
+    crop_out: np.ndarray,
+    a: float,
+    b: np.ndarray,
+    image_hw: tuple[int, int],
+    obj_id: int,
+    box_score: float,
+    voting: VotingConfig,
+    config: TwoStageConfig,
+    rng: np.random.Generator,
+) -> Detection | None:
+    """The detection one crop's output gives, or None when it holds no part:
+    :func:`vote_center`, then :func:`detection_of`.
+
+    Args:
+        crop_out: (3, g, g) object logit and unit vectors on the crop's output grid.
+        a, b: the crop's transform (image = a * crop + b).
+    """
+    vote = vote_center(crop_out, a, b, box_score, voting, config, rng)
+    return None if vote is None else detection_of(vote, image_hw, obj_id)
 
 
 def suppress_duplicates(dets: list[Detection], factor: float) -> list[Detection]:
