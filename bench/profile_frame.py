@@ -35,6 +35,7 @@ STAGES = (
     "template scoring",
     "mixture",
     "edge maps",
+    "settled checks",
     "verification",
     "refinement",
     "estimator (rest)",
@@ -97,6 +98,7 @@ def instrumented(timer: StageTimer):
         (rotation, "select_hypotheses", "template scoring"),
         (RotationMixture, "add", "mixture"),
         (tracker, "edge_view", "edge maps"),
+        (tracker, "agrees", "settled checks"),
         (tracker, "verify", "verification"),
         (tracker, "refine_pose", "refinement"),
     ]
@@ -110,9 +112,10 @@ def instrumented(timer: StageTimer):
             setattr(owner, name, fn)
 
 
-# the step's work, counted: views kept (edge maps), tracks verified, refinements; a
-# verification beyond the views kept is one the "mixture changed" rule asked for
-COUNTED = ("edge maps", "verification", "refinement")
+# the step's work, counted: views kept (edge maps), settled tracks checked against a new view,
+# tracks verified, refinements; a verification beyond the views kept is one the "mixture
+# changed" rule asked for, and a settled check that agreed is a verification saved
+COUNTED = ("edge maps", "settled checks", "verification", "refinement")
 
 
 def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, config=None) -> dict:
@@ -170,7 +173,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
                         )
                     inner = sum(
                         timer.seconds[s]
-                        for s in STAGES[3:12]  # association .. refinement
+                        for s in STAGES[3:13]  # association .. refinement
                     )
                     timer.seconds["estimator (rest)"] += time.perf_counter() - t_est - inner
                     with timer.stage("encode"):
@@ -224,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     n = r["calls"]
     print(
         f"over {r['frames']} frames: {n['edge maps']} views kept (edge maps), "
-        f"{n['verification']} verifications, {n['refinement']} refinements"
+        f"{n['settled checks']} settled checks, {n['verification']} verifications, "
+        f"{n['refinement']} refinements"
     )
     return 0
 

@@ -151,7 +151,11 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float]:
 
     # the annotations are strings (from __future__ import annotations)
     numeric = {f.name: f.type for f in dataclasses.fields(VerificationConfig)}
-    numeric = {k: int if t == "int" else float for k, t in numeric.items() if t in ("int", "float")}
+    numeric = {
+        k: int if t == "int" else float
+        for k, t in numeric.items()
+        if t in ("int", "float", "float | None")
+    }
     out: dict[str, float] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")

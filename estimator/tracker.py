@@ -68,6 +68,8 @@ from posefuse.estimator.verification import (
     ScoreCache,
     Verdict,
     VerificationConfig,
+    agrees,
+    hypotheses,
     is_new_viewpoint,
     near_symmetries,
     verify,
@@ -189,6 +191,10 @@ class Track:
     verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
     scores: ScoreCache = field(default_factory=ScoreCache)  # per-view costs, reused
     refined: Refinement | None = None
+    # the translation prior (3,) the refinement took, and the stamps of the views the refined
+    # pose has been checked against (the settled check)
+    refined_t_prior: np.ndarray | None = None
+    settled_stamps: frozenset = frozenset()
 
     def view(self) -> TrackView:
         e = self.estimate
@@ -533,7 +539,7 @@ class MultiViewEstimator:
         t_world = track.estimate.t_world_obj
         vcfg = self.config.verification
         model = self.catalog[track.obj_id]
-        added = False
+        added: list[int] = []  # stamps of the views kept
         for stamp, T_cam_world, K, mask in track.pending:
             image = self._images.get(stamp)
             if image is None:
@@ -559,14 +565,54 @@ class MultiViewEstimator:
                 )
                 track.edge_views = [v for v in track.edge_views if v.stamp_ns != stamp] + [view]
                 del track.edge_views[: -vcfg.max_views]
-                added = True
+                added.append(stamp)
         track.pending.clear()
-        # verified again when a view adds to what the kept views show, or when the mixture
-        # no longer has the components the last verdict weighed
+        # verified again when a view adds to what the kept views show, unless the track is
+        # settled and the view agrees with it, or when the mixture no longer has the
+        # components the last verdict weighed
         verdict = track.verdict
         stale = verdict is None or len(verdict.weights) != len(track.mixture.components)
-        if added or (stale and track.edge_views):
+        if added and not stale and self._settled(track):
+            track.settled_stamps = track.settled_stamps | set(added)
+            return
+        if (stale and track.edge_views) or added:
             self._verify(track)
+
+    def _settled(self, track: Track) -> bool:
+        """Whether the track's refined pose still holds, so that verifying and refining again
+        for the views just kept would change nothing (VerificationConfig.settled_margin):
+
+        - the refinement was accepted, and the translation has moved less than
+          ``settled_translation_frac`` of the diameter from the prior it took;
+        - every kept view the pose has not yet been checked against agrees with it: in each,
+          the pose costs at most ``settled_margin`` more than the best of the hypotheses a
+          verification would ask about (:func:`estimator.verification.agrees`: within each
+          view, whose costs depend on what it sees, never across views).
+
+        A settled track then costs those hypotheses scored in its new views instead of in every
+        kept view, and no refinement. A mixture that changes is verified and refined as before:
+        keeping the refined pose then lost a part on the tuning sets (docs/verification.md)."""
+        vcfg = self.config.verification
+        refined = track.refined
+        if vcfg.settled_margin is None or refined is None or not refined.accepted:
+            return False
+        edges, variants = self._model_edges(track.obj_id)
+        if (
+            track.refined_t_prior is None
+            or np.linalg.norm(track.estimate.t_world_obj - track.refined_t_prior)
+            > vcfg.settled_translation_frac * edges.diameter
+        ):
+            return False
+        new = [v for v in track.edge_views if v.stamp_ns not in track.settled_stamps]
+        if len(new) == len(track.edge_views):
+            return False
+        if not new:
+            return True
+        components_R = np.array([c.R_world_obj for c in track.mixture.components])
+        R_h, _, _ = hypotheses(components_R, track.mixture.weights, variants, vcfg)
+        return agrees(
+            edges, new, refined.R_world_obj, refined.t_world_obj, R_h, vcfg.settled_margin, vcfg
+        )
 
     def _model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:
         """The class's edge samples and near-symmetric turns (computed on first use)."""
@@ -601,8 +647,8 @@ class MultiViewEstimator:
             track.scores,
         )
         track.verdict = verdict
-        previous, track.refined = track.refined, None
         rcfg = self.config.refinement
+        previous, track.refined = track.refined, None
         if verdict is None or not rcfg.enabled:
             return
         lead = mixture.components[int(verdict.component[verdict.best])]
@@ -619,6 +665,8 @@ class MultiViewEstimator:
             R_init, t_init = previous.R_world_obj, previous.t_world_obj
         # the component's covariance, turned with its variant (a turn in the object frame
         # leaves a world-frame left perturbation as it is)
+        track.refined_t_prior = track.estimate.t_world_obj.copy()
+        track.settled_stamps = frozenset(v.stamp_ns for v in track.edge_views)
         track.refined = refine_pose(
             edges,
             track.edge_views,

@@ -37,8 +37,10 @@ from posefuse.estimator.mixture import closest_equivalents
 __all__ = [
     "ScoreCache",
     "VerificationConfig",
+    "agrees",
     "Verdict",
     "cached_scores",
+    "hypotheses",
     "is_new_viewpoint",
     "near_symmetries",
     "score_hypotheses",
@@ -63,6 +65,13 @@ class VerificationConfig:
     temperature: float = 0.05  # of the re-weighting, in units of mean truncated cost
     near_frac: float = 0.06  # a turn is near-symmetric when the surface moves this little (d)
     max_variants: int = 4
+    # a settled track is neither verified nor refined again for a new view that agrees with
+    # its refined pose: in the view the pose costs at most this much more than the best of the
+    # hypotheses a verification would ask about, and the translation has moved less than
+    # settled_translation_frac of the diameter since the refinement took it as its prior
+    # (None: verified and refined at every new view; see the tracker's _settled)
+    settled_margin: float | None = 0.05  # chosen on the tuning sets (docs/verification.md)
+    settled_translation_frac: float = 0.05
 
 
 @dataclass(eq=False)
@@ -284,6 +293,52 @@ def score_hypotheses(
     return cost.reshape(H, V)
 
 
+def hypotheses(
+    components_R: np.ndarray,
+    component_weights: np.ndarray,
+    variants: np.ndarray,
+    config: VerificationConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The hypotheses a verification asks about: the ``max_components`` heaviest components,
+    each as it is and turned by every variant.
+
+    Args:
+        components_R: (C, 3, 3) R_world_obj; component_weights: (C,); variants: (M, 3, 3).
+    Returns:
+        R_world_obj (H, 3, 3); component (H,) index into the components; variant (H,), 0 for the
+        component itself, m + 1 for variant m.
+    """
+    lead = np.argsort(-np.asarray(component_weights), kind="stable")[: config.max_components]
+    turns = np.concatenate([np.eye(3)[None], variants])  # (1 + M, 3, 3)
+    R_h = np.einsum("cij,mjk->cmik", components_R[lead], turns).reshape(-1, 3, 3)
+    return R_h, np.repeat(lead, len(turns)), np.tile(np.arange(len(turns)), len(lead))
+
+
+def agrees(
+    edges: ModelEdges,
+    new_views: list[EdgeView],
+    R_world_obj: np.ndarray,
+    t_world_obj: np.ndarray,
+    others_R: np.ndarray,
+    margin: float,
+    config: VerificationConfig,
+) -> bool:
+    """Whether each new view agrees with a pose: in it the pose costs at most ``margin`` more
+    than the best of ``others_R`` (at the pose's translation). The comparison stays within each
+    view, since what a view's costs are depends on what it sees; a view that cannot tell the
+    hypotheses apart agrees with any of them.
+
+    Args:
+        new_views: the views to ask; R_world_obj: (3, 3); t_world_obj: (3,) metres;
+        others_R: (H, 3, 3), the hypotheses a verification would score (:func:`hypotheses`).
+    """
+    if not new_views or len(others_R) == 0:
+        return bool(new_views)
+    poses = np.concatenate([np.asarray(R_world_obj, float)[None], others_R])
+    cost = score_hypotheses(edges, new_views, poses, t_world_obj, config)  # (1 + H, V)
+    return bool(np.all(cost[0] <= cost[1:].min(axis=0) + margin))
+
+
 def verify(
     edges: ModelEdges,
     views: list[EdgeView],
@@ -307,11 +362,7 @@ def verify(
     C = len(components_R)
     if C == 0 or not views:
         return None
-    lead = np.argsort(-np.asarray(component_weights), kind="stable")[: config.max_components]
-    turns = np.concatenate([np.eye(3)[None], variants])  # (1 + M, 3, 3)
-    R_h = np.einsum("cij,mjk->cmik", components_R[lead], turns).reshape(-1, 3, 3)
-    comp = np.repeat(lead, len(turns))
-    var = np.tile(np.arange(len(turns)), len(lead))
+    R_h, comp, var = hypotheses(components_R, component_weights, variants, config)
     if cache is None:
         per_view = score_hypotheses(edges, views, R_h, t_world_obj, config)
     else:

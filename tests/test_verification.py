@@ -23,7 +23,9 @@ from posefuse.estimator.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Re
 from posefuse.estimator.verification import (
     ScoreCache,
     VerificationConfig,
+    agrees,
     cached_scores,
+    hypotheses,
     near_symmetries,
     score_hypotheses,
     verify,
@@ -108,6 +110,37 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     # with the first view alone the two differ by less than half what the second view adds
     alone = verify(edges, views[:1], flipped[None], np.array([1.0]), variants, center, CONFIG)
     assert np.ptp(alone.cost) < 0.5 * (second[1] - second[0])
+
+
+def test_a_new_view_that_sees_the_flip_disagrees_with_it_and_one_that_cannot_agrees(
+    robi_catalog,
+):
+    """The settled check (verification.agrees): a track settled on the flipped screw is
+    verified again when the side view comes, and not for the end-on view, which cannot tell."""
+    screw = _model(robi_catalog, "chrome_screw")
+    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    center = T_world_obj[:3, 3]
+    end_on = center + np.array([0.0, 0.0, 2.0])
+    side = center + np.array([0.35, 0.12, 0.22])
+    views = _views(screw, T_world_obj, [end_on, side], CHROME)
+    truth = T_world_obj[:3, :3]
+    flipped = truth @ so3_exp(np.array([np.pi, 0.0, 0.0]))
+    edges = _edges(screw)
+    axis = np.array([[0.0, 0.0, 1.0]])
+    variants = near_symmetries(screw.points, screw.diameter, np.eye(3)[None], axis)
+    # what a verification of a mixture that holds the flip alone would ask about
+    asked, _, _ = hypotheses(flipped[None], np.array([1.0]), variants, CONFIG)
+    side_cost = score_hypotheses(edges, views[1:], np.array([flipped, truth]), center, CONFIG)
+    gap = float(side_cost[0, 0] - side_cost[1, 0])  # what the side view holds against the flip
+    assert gap > 0.08
+    margin = 0.5 * gap  # the end-on view differs by less (the test above)
+    assert agrees(edges, views[:1], flipped, center, asked, margin, CONFIG)
+    assert not agrees(edges, views[1:], flipped, center, asked, margin, CONFIG)
+    assert not agrees(edges, views, flipped, center, asked, margin, CONFIG)  # every new view
+    # settled on the truth, both agree; a margin past the gap would let the flip by
+    assert agrees(edges, views, truth, center, asked, margin, CONFIG)
+    assert agrees(edges, views[1:], flipped, center, asked, gap + 1e-9, CONFIG)
+    assert not agrees(edges, [], truth, center, asked, margin, CONFIG)
 
 
 def _tube(robi_catalog):
@@ -264,6 +297,60 @@ def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
             assert [v.stamp_ns for v in t.edge_views] == kept[k]
             if t.verdict is not None and len(t.verdict.weights) == len(t.mixture.components):
                 assert t.verdict is verdicts[k]
+
+
+def test_a_settled_track_is_verified_again_only_when_a_new_view_disagrees(
+    small_dataset_root, default_banks, monkeypatch
+):
+    """With the settled check, a new view that agrees with the refined pose costs one check
+    and no verification; without it (the default), every new view is verified and refined. A
+    margin no view can meet verifies as often as no check."""
+    import dataclasses
+
+    from posefuse.estimator import tracker as tracker_module
+    from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.tracker import TrackerConfig
+
+    dataset = load_dataset(small_dataset_root)
+    scene_id = dataset.scene_ids[0]
+    counts = {}
+    real_verify, real_agrees = tracker_module.verify, tracker_module.agrees
+    real_refine = tracker_module.refine_pose
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            counts[name] = counts.get(name, 0) + 1
+            if name == "agrees":
+                counts["agreed"] = counts.get("agreed", 0) + int(out)
+            return out
+
+        return wrapper
+
+    monkeypatch.setattr(tracker_module, "verify", counted("verify", real_verify))
+    monkeypatch.setattr(tracker_module, "agrees", counted("agrees", real_agrees))
+    monkeypatch.setattr(tracker_module, "refine_pose", counted("refine", real_refine))
+    runs = {}
+    for margin in (None, -10.0, 10.0):
+        counts.clear()
+        config = TrackerConfig(
+            verification=dataclasses.replace(VerificationConfig(), settled_margin=margin)
+        )
+        estimator = _run_scene(dataset, scene_id, config, default_banks)
+        runs[margin] = (dict(counts), estimator)
+    never, _ = runs[None]
+    impossible, _ = runs[-10.0]
+    lenient, estimator = runs[10.0]
+    assert "agrees" not in never and never["verify"] > 0
+    assert impossible["verify"] == never["verify"] and impossible.get("agreed", 0) == 0
+    assert impossible["agrees"] > 0  # asked, and said no
+    assert lenient["agreed"] > 0
+    assert lenient["verify"] < never["verify"]
+    assert lenient["refine"] < never["refine"] == never["verify"]
+    for track in estimator.tracks.values():  # what is published stays the verified lead
+        if track.refined is not None and track.refined.accepted:
+            e = next(e for e in estimator.estimates() if e.object_id == track.object_id)
+            assert np.allclose(e.T_world_obj[:3, :3], track.refined.R_world_obj, atol=1e-9)
 
 
 @settings(max_examples=60, deadline=None)
