@@ -142,27 +142,32 @@ def run_and_write(
     return report
 
 
-def verification_settings(pairs: list[str] | None) -> dict[str, float]:
-    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields; a
-    PosefuseError names a malformed pair or an unknown field."""
+def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
+    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields (an
+    optional one, such as ``settled_margin``, also takes ``none``); a PosefuseError names a
+    malformed pair or an unknown field."""
     import dataclasses
 
     from posefuse.estimator.verification import VerificationConfig
 
     # the annotations are strings (from __future__ import annotations)
     numeric = {f.name: f.type for f in dataclasses.fields(VerificationConfig)}
+    optional = {k for k, t in numeric.items() if t == "float | None"}  # "none" switches it off
     numeric = {
         k: int if t == "int" else float
         for k, t in numeric.items()
         if t in ("int", "float", "float | None")
     }
-    out: dict[str, float] = {}
+    out: dict[str, float | None] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")
         if not sep or key not in numeric:
             raise PosefuseError(
                 f"--verification {pair!r}: expected KEY=VALUE with KEY one of {sorted(numeric)}"
             )
+        if key in optional and value.strip().lower() == "none":
+            out[key] = None
+            continue
         try:
             out[key] = numeric[key](value)
         except ValueError:
@@ -420,7 +425,8 @@ def register(subparsers) -> None:
         "--verification",
         action="append",
         metavar="KEY=VALUE",
-        help="replace a verification setting, e.g. mask_weight=2.0 (repeatable; for tuning)",
+        help="replace a verification setting, e.g. mask_weight=2.0, or settled_margin=none to "
+        "verify at every new view (repeatable; for tuning)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

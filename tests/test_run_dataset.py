@@ -156,12 +156,17 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     off = tracker_config(no_verify=True, verification=settings)
     assert not off.verification.enabled and not off.refinement.enabled
     assert verification_settings(None) == {}
+    # an optional setting takes "none": the settled check off
+    assert verification_settings(["settled_margin=none"]) == {"settled_margin": None}
+    assert verification_settings(["settled_margin=0.1"]) == {"settled_margin": 0.1}
+    assert tracker_config(verification={"settled_margin": None}).verification.settled_margin is None
     for bad, says in [
         ("mask=1", "mask=1"),
         ("mask_weight", "KEY=VALUE"),
         ("mask_weight=heavy", "'heavy' is not a number"),
         ("edges=1", "edges=1"),
         ("enabled=0", "enabled=0"),
+        ("mask_weight=none", "'none' is not a number"),  # only an optional setting is off
     ]:
         with pytest.raises(PosefuseError, match=says):
             verification_settings([bad])
