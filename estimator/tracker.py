@@ -647,8 +647,8 @@ class MultiViewEstimator:
             track.scores,
         )
         track.verdict = verdict
-        rcfg = self.config.refinement
         previous, track.refined = track.refined, None
+        rcfg = self.config.refinement
         if verdict is None or not rcfg.enabled:
             return
         lead = mixture.components[int(verdict.component[verdict.best])]

@@ -449,17 +449,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         )
         if config.extend is not None:
             config = config.extended(*config.extend)
-    data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
-    t_render = time.time()
-    spec = RenderSpec(
-        config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction
-    )
-    ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
-    val_spec = RenderSpec(
-        config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction
-    )
-    val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
-    render_minutes = (time.time() - t_render) / 60
+    # a fine-tune's architecture is settled (and refused) before any rendering
     base = None
     if config.init and state is None:
         base = torch.load(config.init, map_location="cpu", weights_only=False)
@@ -480,6 +470,17 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             crop_width=crop_width if crop_width != base_width else None,
             crop_box_channel=bool(stored.get("crop_box_channel")) or config.crop_box_channel,
         )
+    data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
+    t_render = time.time()
+    spec = RenderSpec(
+        config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction
+    )
+    ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
+    val_spec = RenderSpec(
+        config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction
+    )
+    val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
+    render_minutes = (time.time() - t_render) / 60
     nets = _Nets(len(catalog), config)
     step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
     # what a fine-tune started from, so that its learning curve can continue the base's
