@@ -36,6 +36,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
     if args.crop_width is not None and args.crop_width < 1:
         raise PosefuseError(f"--crop-width: {args.crop_width}: must be at least 1")
+    if args.vote_loss is not None and args.vote_loss < 0:
+        raise PosefuseError(f"--vote-loss: {args.vote_loss}: must be at least 0")
     if args.threads < 1:
         raise PosefuseError(f"--threads: {args.threads}: must be at least 1")
     config = TrainConfig(
@@ -63,6 +65,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         init=args.init,
         run_steps=args.run_steps,
         extend=(args.extend, args.extend_lr) if args.extend else None,
+        vote_loss=args.vote_loss,
     )
     card = train(args.catalog, args.out, config)
     print(json.dumps(card, indent=2))
@@ -121,6 +124,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="augment with upside-down flips (both stages) and transposes (stage two) besides "
         "mirrors; kept in the checkpoint",
+    )
+    p.add_argument(
+        "--vote-loss",
+        type=float,
+        default=None,
+        help="weight of the proxy voting loss on stage two's votes (0: off, the default; a "
+        "resume keeps the checkpoint's unless given)",
     )
     p.add_argument("--crop-batch", type=int, default=48, help="stage-two crops per step")
     p.add_argument(

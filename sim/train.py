@@ -7,7 +7,11 @@ one optimizer step of each per iteration (:mod:`sim.train_targets` draws the bat
 
 - stage one, ``BoxDetectorNet``: focal loss on the class heatmaps, L1 on box size and offset;
 - stage two, ``CropVotingNet``: binary cross-entropy on the object label, smooth L1 on the
-  unit vectors of the object's pixels.
+  unit vectors of the object's pixels and, with ``vote_loss`` > 0, the proxy voting loss of
+  Yu et al. (CVPR 2020): smooth L1 on the distance from the center to the line each pixel votes
+  along. The unit-vector loss weighs a pixel's angle alike near and far from the center; a vote
+  lands off by that angle times the distance, so the far pixels make the heavy tail of the
+  voted centers, and this loss weighs them by it.
 
 Training is a resumable job. The schedule (warm-up, then a cosine over ``iterations`` steps)
 and the batches depend on the step number alone, and the checkpoint (``--checkpoint``,
@@ -93,6 +97,8 @@ class TrainConfig:
     # warm restarts appended by ``--extend``: (first step, last step + 1, peak learning rate)
     restarts: tuple[tuple[int, int, float], ...] = ()
     extend: tuple[int, float] | None = None  # with ``resume``: (steps, peak lr) of one more restart
+    # weight of the proxy voting loss (0: off); not part of the stream, so a resume may add it
+    vote_loss: float | None = None  # None: a resume's checkpoint's, else 0
     extra: dict = field(default_factory=dict)
 
     @property
@@ -220,7 +226,10 @@ class _Nets:
         loss_label = F.binary_cross_entropy_with_logits(crop_out[:, :1], label)
         loss_vec = (F.smooth_l1_loss(crop_out[:, 1:], vec, reduction="none") * label).sum()
         loss_vec = loss_vec / label.sum().clamp(min=1.0)
+        loss_vote = proxy_voting_loss(crop_out[:, 1:], label, vec)
         loss = loss_heat + loss_box + loss_label + 2.0 * loss_vec
+        if self.config.vote_loss:
+            loss = loss + self.config.vote_loss * loss_vote
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
@@ -229,6 +238,7 @@ class _Nets:
             "box": float(loss_box.detach()),
             "label": float(loss_label.detach()),
             "vec": float(loss_vec.detach()),
+            "vote": float(loss_vote.detach()),
         }
 
     def state(self) -> dict:
@@ -310,6 +320,63 @@ class _Nets:
             dynamic_axes={"crops": {0: "n"}, "out": {0: "n"}},
         )
         model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
+
+
+def target_centers(label, vec):
+    """Where each crop's target vectors meet, in output cells (x, y): the least-squares point
+    closest to every labelled cell's line; exact for rendered targets, which all point at
+    the projected model origin.
+
+    Args:
+        label: (B, 1, g, g) torch float {0, 1}; vec: (B, 2, g, g) unit vectors (0 off the part).
+    Returns:
+        (B, 2) torch float; a crop without labelled cells gets the crop's center.
+    """
+    import torch
+
+    g = label.shape[-1]
+    ys, xs = torch.meshgrid(torch.arange(g, dtype=vec.dtype), torch.arange(g, dtype=vec.dtype),
+                            indexing="ij")
+    tx, ty, w = vec[:, 0], vec[:, 1], label[:, 0]
+    # each line's normal projector (I - t t^T), summed over the labelled cells
+    a11, a12, a22 = (w * (1 - tx * tx)).sum((1, 2)), (w * -tx * ty).sum((1, 2)), (
+        w * (1 - ty * ty)
+    ).sum((1, 2))
+    b1 = (w * ((1 - tx * tx) * xs - tx * ty * ys)).sum((1, 2))
+    b2 = (w * (-tx * ty * xs + (1 - ty * ty) * ys)).sum((1, 2))
+    ridge = 1e-6 * (w.sum((1, 2)) + 1.0)
+    half = (g - 1) / 2
+    b1, b2 = b1 + ridge * half, b2 + ridge * half  # ridge pulls an empty crop to its center
+    a11, a22 = a11 + ridge, a22 + ridge
+    det = a11 * a22 - a12 * a12
+    return torch.stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det], 1)
+
+
+def proxy_voting_loss(pred, label, vec):
+    """The proxy voting loss (Yu et al., CVPR 2020) of stage two's vector field, in cells.
+
+    Args:
+        pred: (B, 2, g, g) predicted vectors (any length); label, vec: the targets, (B, 1, g, g)
+            and (B, 2, g, g).
+    Returns:
+        scalar: smooth L1 (beta one cell) of each labelled cell's distance from the center to
+        the line through the cell along its predicted direction, averaged over labelled cells.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    g = label.shape[-1]
+    center = target_centers(label, vec).detach()
+    ys, xs = torch.meshgrid(torch.arange(g, dtype=pred.dtype), torch.arange(g, dtype=pred.dtype),
+                            indexing="ij")
+    dx = center[:, 0, None, None] - xs
+    dy = center[:, 1, None, None] - ys
+    unit = pred / pred.norm(dim=1, keepdim=True).clamp(min=1e-6)
+    dist = (dx * unit[:, 1] - dy * unit[:, 0]).abs()
+    w = label[:, 0]
+    return (F.smooth_l1_loss(dist, torch.zeros_like(dist), reduction="none") * w).sum() / (
+        w.sum().clamp(min=1.0)
+    )
 
 
 def _lineage_cpu(record: dict | None) -> float:
@@ -447,6 +514,8 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             # a checkpoint older than the option was trained without it
             dihedral=bool(stored.get("dihedral", False)),
         )
+        if config.vote_loss is None:
+            config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
         if config.extend is not None:
             config = config.extended(*config.extend)
     # a fine-tune's architecture is settled (and refused) before any rendering
@@ -545,7 +614,10 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             {
                 "version": CHECKPOINT_VERSION,
                 "catalog_hash": catalog_hash(catalog),
-                "config": {k: getattr(config, k) for k in _STREAM_FIELDS},
+                "config": {
+                    **{k: getattr(config, k) for k in _STREAM_FIELDS},
+                    "vote_loss": config.vote_loss or 0.0,
+                },
                 "step": step,
                 "cpu_seconds": cpu_seconds,
                 "wall_seconds": wall_seconds,
@@ -610,6 +682,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "render_minutes_this_run": round(render_minutes, 1),
             "seed": config.seed,
             "bf16_autocast": config.bf16,
+            "proxy_voting_loss_weight": config.vote_loss or 0.0,
             "initialised_from": config.init or (lineage or {}).get("checkpoint"),
             # this run's hours and those of every checkpoint it was fine-tuned from
             "cumulative_cpu_hours": round((cpu_seconds + _lineage_cpu(lineage)) / 3600, 3),

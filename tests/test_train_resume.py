@@ -251,3 +251,32 @@ def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_pa
         _config(tmp_path, resume=str(old), dihedral=True, extend=(2, 1e-3)),
     )
     assert _weights(old)[1]["config"]["dihedral"] is False
+
+
+def test_the_proxy_voting_loss_finds_the_center_and_weighs_a_vote_by_its_distance():
+    """The target vectors meet at the center they were drawn to; the loss is zero on them,
+    and a vote turned by an angle costs its distance to the center times that angle."""
+    from posefuse.sim.train import proxy_voting_loss, target_centers
+    from posefuse.sim.train_targets import crop_targets
+
+    g, S = 24, 96
+    inst = np.zeros((200, 200), np.uint8)
+    inst[60:140, 70:150] = 1
+    uv = np.array([101.3, 97.8])
+    a, b = 1.4, np.array([30.0, 25.0])
+    label, vec = crop_targets(inst, 0, uv, a, b, S)
+    L, V = torch.from_numpy(label)[None, None], torch.from_numpy(vec)[None]
+    center = target_centers(L, V)[0].numpy()
+    expected = ((uv - b) / a - 1.5) / 4  # cell j is crop pixel 4 j + 1.5
+    assert np.allclose(center, expected, atol=1e-3)
+    assert float(proxy_voting_loss(V, L, V)) < 1e-6
+    angle = 0.02
+    c, s = np.cos(angle), np.sin(angle)
+    turned = torch.stack([c * V[:, 0] - s * V[:, 1], s * V[:, 0] + c * V[:, 1]], 1)
+    ys, xs = np.nonzero(label)
+    dist = np.hypot(expected[0] - xs, expected[1] - ys) * np.sin(angle)
+    expect = np.where(dist < 1, 0.5 * dist**2, dist - 0.5).mean()
+    assert float(proxy_voting_loss(turned * 3.0, L, V)) == pytest.approx(expect, rel=1e-3)
+    # a crop without a part adds nothing and stays finite
+    empty = proxy_voting_loss(turned, torch.zeros_like(L), torch.zeros_like(V))
+    assert float(empty) == 0.0
