@@ -335,13 +335,16 @@ def target_centers(label, vec):
     import torch
 
     g = label.shape[-1]
-    ys, xs = torch.meshgrid(torch.arange(g, dtype=vec.dtype), torch.arange(g, dtype=vec.dtype),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(g, dtype=vec.dtype), torch.arange(g, dtype=vec.dtype), indexing="ij"
+    )
     tx, ty, w = vec[:, 0], vec[:, 1], label[:, 0]
     # each line's normal projector (I - t t^T), summed over the labelled cells
-    a11, a12, a22 = (w * (1 - tx * tx)).sum((1, 2)), (w * -tx * ty).sum((1, 2)), (
-        w * (1 - ty * ty)
-    ).sum((1, 2))
+    a11, a12, a22 = (
+        (w * (1 - tx * tx)).sum((1, 2)),
+        (w * -tx * ty).sum((1, 2)),
+        (w * (1 - ty * ty)).sum((1, 2)),
+    )
     b1 = (w * ((1 - tx * tx) * xs - tx * ty * ys)).sum((1, 2))
     b2 = (w * (-tx * ty * xs + (1 - ty * ty) * ys)).sum((1, 2))
     ridge = 1e-6 * (w.sum((1, 2)) + 1.0)
@@ -367,8 +370,9 @@ def proxy_voting_loss(pred, label, vec):
 
     g = label.shape[-1]
     center = target_centers(label, vec).detach()
-    ys, xs = torch.meshgrid(torch.arange(g, dtype=pred.dtype), torch.arange(g, dtype=pred.dtype),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(g, dtype=pred.dtype), torch.arange(g, dtype=pred.dtype), indexing="ij"
+    )
     dx = center[:, 0, None, None] - xs
     dy = center[:, 1, None, None] - ys
     unit = pred / pred.norm(dim=1, keepdim=True).clamp(min=1e-6)

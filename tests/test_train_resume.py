@@ -259,7 +259,7 @@ def test_the_proxy_voting_loss_finds_the_center_and_weighs_a_vote_by_its_distanc
     from posefuse.sim.train import proxy_voting_loss, target_centers
     from posefuse.sim.train_targets import crop_targets
 
-    g, S = 24, 96
+    S = 96
     inst = np.zeros((200, 200), np.uint8)
     inst[60:140, 70:150] = 1
     uv = np.array([101.3, 97.8])
