@@ -48,6 +48,8 @@ class RefineConfig:
     step_tol_deg: float = 0.05
     step_tol_frac: float = 0.001
     cost_tol: float = 0.002  # or when a step lowers the cost by less than this fraction
+    # stop as soon as the translation has moved farther than accept_frac from the start
+    stop_when_refused: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -246,6 +248,11 @@ def refine_pose(
             # converged: the step was below the tolerance, or lowered the cost by a fraction
             # the samples' renewal outweighs
             if small or before - cost < config.cost_tol * before:
+                break
+            # gone past what would be accepted: the result is refused however it ends
+            if config.stop_when_refused and np.linalg.norm(t - t_start) > (
+                config.accept_frac * edges.diameter
+            ):
                 break
         else:
             lam *= 5

@@ -576,7 +576,7 @@ class MultiViewEstimator:
             track.settled_stamps = track.settled_stamps | set(added)
             return
         if (stale and track.edge_views) or added:
-            self._verify(track)
+            self._verify(track, new_views=bool(added))
 
     def _settled(self, track: Track) -> bool:
         """Whether the track's refined pose still holds, so that verifying and refining again
@@ -627,9 +627,15 @@ class MultiViewEstimator:
             )
         return self._edges[obj_id], self._variants[obj_id]
 
-    def _verify(self, track: Track) -> None:
+    def _verify(self, track: Track, new_views: bool = True) -> None:
         """Score the leading hypotheses in all kept views; refine the winner over them
-        (:mod:`estimator.verification`, :mod:`estimator.refinement`)."""
+        (:mod:`estimator.verification`, :mod:`estimator.refinement`).
+
+        Without new views (the mixture gained or lost a component), a winner whose basin holds
+        the last accepted refinement, at a translation that has moved less than
+        ``settled_translation_frac`` of the diameter from that refinement's prior, keeps it:
+        refining again over the same views from the same place would land where it did
+        (``VerificationConfig.reuse_refinement``)."""
         mixture = track.mixture
         if mixture is None or not mixture.components or not track.edge_views:
             return
@@ -655,14 +661,26 @@ class MultiViewEstimator:
         R_start = verdict.R_world_obj[verdict.best]
         # the last refined pose, where it lies in the basin of today's start, is a warm start
         R_init = t_init = None
-        if (
+        in_basin = (
             previous is not None
             and previous.accepted
             and rotation_angle(previous.R_world_obj @ R_start.T) <= np.deg2rad(rcfg.accept_deg)
-            and np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
+        )
+        if in_basin and (
+            np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
             <= rcfg.accept_frac * edges.diameter
         ):
             R_init, t_init = previous.R_world_obj, previous.t_world_obj
+        if (
+            in_basin
+            and not new_views
+            and vcfg.reuse_refinement
+            and track.refined_t_prior is not None
+            and np.linalg.norm(track.estimate.t_world_obj - track.refined_t_prior)
+            <= vcfg.settled_translation_frac * edges.diameter
+        ):
+            track.refined = previous
+            return
         # the component's covariance, turned with its variant (a turn in the object frame
         # leaves a world-frame left perturbation as it is)
         track.refined_t_prior = track.estimate.t_world_obj.copy()

@@ -72,6 +72,9 @@ class VerificationConfig:
     # (None: verified and refined at every new view; see the tracker's _settled)
     settled_margin: float | None = 0.05  # chosen on the tuning sets (docs/verification.md)
     settled_translation_frac: float = 0.05
+    # a verification without new views whose winner holds the last refinement in its basin
+    # keeps that refinement instead of refining again (the tracker's _verify)
+    reuse_refinement: bool = True
 
 
 @dataclass(eq=False)

@@ -4,6 +4,8 @@ refuses what it may not do, and a warm start saves work without changing where i
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from test_verification import CONFIG, _edges, _tube
 
@@ -193,6 +195,24 @@ def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_ca
     assert np.all(np.linalg.eigvalsh(ok.cov) > 0)
     assert np.trace(ok.cov[3:, 3:]) < np.trace(np.eye(3) * np.deg2rad(20.0) ** 2)
     assert np.trace(ok.cov[:3, :3]) < 3 * (0.1 * model.diameter) ** 2
+
+
+def test_a_refinement_past_what_would_be_accepted_stops_there_with_the_same_answer(
+    robi_catalog,
+):
+    """Once the translation has moved farther than accept_frac, the result is refused however
+    the iterations end: stopping there returns what running on returns, in fewer steps."""
+    strict = RefineConfig(accept_frac=0.001)
+    *_, (R0, t0), stopped = _tube_refinement(robi_catalog, strict)
+    *_, ran_on = _tube_refinement(
+        robi_catalog, dataclasses.replace(strict, stop_when_refused=False)
+    )
+    assert not stopped.accepted and not ran_on.accepted
+    assert stopped.iterations < ran_on.iterations
+    for a, b in ((stopped.R_world_obj, ran_on.R_world_obj), (stopped.t_world_obj, t0)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(stopped.cov, ran_on.cov)
+    assert stopped.cost == ran_on.cost == stopped.cost_start
 
 
 def test_a_warm_start_ends_where_a_cold_one_does_in_fewer_steps_and_a_bad_one_is_ignored(
