@@ -142,22 +142,31 @@ def run_and_write(
     return report
 
 
-def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
-    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields (an
-    optional one, such as ``settled_margin``, also takes ``none``); a PosefuseError names a
-    malformed pair or an unknown field."""
+def _numeric_fields(cls) -> dict[str, type]:
+    """The int and float fields of a dataclass (the annotations are strings)."""
     import dataclasses
 
+    return {
+        f.name: int if f.type == "int" else float
+        for f in dataclasses.fields(cls)
+        if f.type in ("int", "float", "float | None")
+    }
+
+
+def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
+    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields, or
+    ``edges.KEY`` for the EdgeConfig it holds (an optional one, such as ``settled_margin``,
+    also takes ``none``); a PosefuseError names a malformed pair or an unknown field."""
+    import dataclasses
+
+    from posefuse.estimator.edges import EdgeConfig
     from posefuse.estimator.verification import VerificationConfig
 
-    # the annotations are strings (from __future__ import annotations)
-    numeric = {f.name: f.type for f in dataclasses.fields(VerificationConfig)}
-    optional = {k for k, t in numeric.items() if t == "float | None"}  # "none" switches it off
-    numeric = {
-        k: int if t == "int" else float
-        for k, t in numeric.items()
-        if t in ("int", "float", "float | None")
-    }
+    optional = {
+        f.name for f in dataclasses.fields(VerificationConfig) if f.type == "float | None"
+    }  # "none" switches it off
+    numeric = _numeric_fields(VerificationConfig)
+    numeric.update({f"edges.{k}": t for k, t in _numeric_fields(EdgeConfig).items()})
     out: dict[str, float | None] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")
@@ -186,9 +195,15 @@ def tracker_config(
 
     config = TrackerConfig()
     if verification:
-        config = dataclasses.replace(
-            config, verification=dataclasses.replace(config.verification, **verification)
-        )
+        own = {k: v for k, v in verification.items() if not k.startswith("edges.")}
+        edges = {k[len("edges.") :]: v for k, v in verification.items() if k.startswith("edges.")}
+        verification_config = dataclasses.replace(config.verification, **own)
+        if edges:
+            verification_config = dataclasses.replace(
+                verification_config,
+                edges=dataclasses.replace(verification_config.edges, **edges),
+            )
+        config = dataclasses.replace(config, verification=verification_config)
     if no_verify:
         config = dataclasses.replace(
             config, verification=dataclasses.replace(config.verification, enabled=False)

@@ -53,7 +53,9 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    max_points: int = 2000  # edge samples of a model, at most
+    # edge samples of a model, at most (docs/verification.md, "Fewer edge samples": 1000 halves
+    # the step's cost and lost two chrome screws on the tuning set)
+    max_points: int = 2000
 
     def __post_init__(self) -> None:
         if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0:
@@ -66,6 +68,7 @@ class ModelEdges:
 
     points: (P, 3); directions: (P, 3) unit edge directions; normals: (P, 2, 3) unit normals of
     the two faces meeting at the point's edge; crease: (P,) bool, the faces meet at a sharp angle.
+    spacing: metres of edge between consecutive samples (None: unknown, as for hand-made sets).
     """
 
     points: np.ndarray
@@ -74,6 +77,14 @@ class ModelEdges:
     crease: np.ndarray
     diameter: float
     mesh: trimesh.Trimesh | None = None  # the decimated mesh, for the occlusion test
+    spacing: float | None = None
+
+    def samples_for(self, count_at_finest: float) -> float:
+        """How many of this model's samples cover the edge length that ``count_at_finest``
+        samples cover at the finest spacing, diameter / 80 (the same for every ``max_points``)."""
+        if self.spacing is None:
+            return count_at_finest
+        return count_at_finest * (self.diameter / 80.0) / self.spacing
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,7 +140,7 @@ def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> M
     directions = (b - a)[edge] / np.maximum(length[edge], 1e-12)[:, None]
     normals = mesh.face_normals[adjacency[edge]]  # (P, 2, 3)
     crease = angles[edge] > np.deg2rad(config.crease_deg)
-    return ModelEdges(points, directions, normals, crease, float(diameter), mesh)
+    return ModelEdges(points, directions, normals, crease, float(diameter), mesh, cum[-1] / n)
 
 
 def pose_edges(

@@ -61,7 +61,9 @@ class VerificationConfig:
     max_components: int = 5  # the leading components are verified, with their variants
     crease_weight: float = 0.5  # weight of the creases' chamfer against the contour's
     mask_weight: float = 1.5  # weight of the mask-boundary chamfer against the contour's
-    min_points: int = 12  # a view with fewer visible edge samples says nothing (cost 1)
+    # a view that shows less edge than min_points samples at the finest spacing (d / 80: 0.15 d
+    # of edge) says nothing (cost 1); ModelEdges.samples_for turns it into the model's samples
+    min_points: int = 12
     temperature: float = 0.05  # of the re-weighting, in units of mean truncated cost
     near_frac: float = 0.06  # a turn is near-symmetric when the surface moves this little (d)
     max_variants: int = 4
@@ -254,7 +256,8 @@ def score_hypotheses(
     """(H, V) cost of each hypothesis in each view: the mean truncated directional chamfer of
     its occluding contour (in [0, 1]), plus ``crease_weight`` times that of its visible creases,
     plus ``mask_weight`` times the mean truncated distance of its contour to the mask's boundary
-    (when the view has a mask). A term with fewer than ``min_points`` samples costs 1.
+    (when the view has a mask). A term that shows less edge than ``min_points`` samples at the
+    finest spacing (:meth:`ModelEdges.samples_for`) costs 1.
 
     Args:
         R_world_obj: (H, 3, 3). t_world_obj: (3,) or (H, 3) metres.
@@ -281,11 +284,11 @@ def score_hypotheses(
 
     def mean_or_one(values: np.ndarray, use: np.ndarray) -> np.ndarray:
         """(N,) per pose: the mean of ``values`` over its ``use`` samples, truncated to [0, 1];
-        1 (no information) with fewer than ``min_points`` of them."""
+        1 (no information) with fewer than ``min_points`` of them at the finest spacing."""
         n = np.bincount(pose, weights=use, minlength=N)
         total = np.bincount(pose, weights=values * use, minlength=N)
         mean = total / np.maximum(n, 1) / ec.truncate_px
-        return np.where(n >= config.min_points, mean, 1.0)
+        return np.where(n >= edges.samples_for(config.min_points) - 1e-9, mean, 1.0)
 
     cost = mean_or_one(d, on_contour) + config.crease_weight * mean_or_one(d, ~on_contour)
     with_mask = np.array([v.mask_dt is not None for v in views])

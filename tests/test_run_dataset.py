@@ -160,11 +160,18 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     assert verification_settings(["settled_margin=none"]) == {"settled_margin": None}
     assert verification_settings(["settled_margin=0.1"]) == {"settled_margin": 0.1}
     assert tracker_config(verification={"settled_margin": None}).verification.settled_margin is None
+    # the edge settings it holds, by a dotted key
+    edges = verification_settings(["edges.max_points=600", "edges.truncate_px=8"])
+    assert edges == {"edges.max_points": 600, "edges.truncate_px": 8.0}
+    nested = tracker_config(verification={**edges, "max_views": 3}).verification
+    assert nested.edges.max_points == 600 and nested.edges.truncate_px == 8.0
+    assert nested.edges.roi_size == VerificationConfig().edges.roi_size and nested.max_views == 3
     for bad, says in [
         ("mask=1", "mask=1"),
         ("mask_weight", "KEY=VALUE"),
         ("mask_weight=heavy", "'heavy' is not a number"),
         ("edges=1", "edges=1"),
+        ("edges.max_faces_x=1", "edges.max_faces_x"),
         ("enabled=0", "enabled=0"),
         ("mask_weight=none", "'none' is not a number"),  # only an optional setting is off
     ]:

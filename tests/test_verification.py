@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posefuse.estimator.camera import Camera
-from posefuse.estimator.edges import edge_view, model_edges, pose_edges
+from posefuse.estimator.edges import EdgeConfig, edge_view, model_edges, pose_edges
 from posefuse.estimator.geometry import invert, make_transform, rotation_angle, so3_exp
 from posefuse.estimator.mixture import closest_equivalent
 from posefuse.estimator.nbv import look_at
@@ -368,10 +368,15 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
     estimator = _run_scene(dataset, dataset.scene_ids[0], None, default_banks)
     refined = [t for t in estimator.tracks.values() if t.refined is not None and t.refined.accepted]
     assert refined
+    accept = np.deg2rad(estimator.config.refinement.accept_deg)
+    kept = 0
     for track in refined:
         previous = track.refined
         estimator._verify(track, new_views=False)
-        assert track.refined is previous
+        lead = track.verdict.R_world_obj[track.verdict.best]
+        holds = rotation_angle(previous.R_world_obj @ lead.T) <= accept
+        assert (track.refined is previous) == holds
+        kept += holds
         estimator._verify(track, new_views=True)
         assert track.refined is not previous and track.refined.accepted
         previous = track.refined
@@ -379,6 +384,7 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
         track.refined_t_prior = track.refined_t_prior + np.array([0.0, 0.0, 0.06 * diameter])
         estimator._verify(track, new_views=False)
         assert track.refined is not previous
+    assert kept > 0
     off = TrackerConfig(
         verification=dataclasses.replace(VerificationConfig(), reuse_refinement=False)
     )
@@ -1002,6 +1008,20 @@ def _sharp_edges_end_to_end(mesh):
     ends = mesh.face_adjacency_edges[keep]
     a, b = mesh.vertices[ends[:, 0]], mesh.vertices[ends[:, 1]]
     return a, b, np.cumsum(np.linalg.norm(b - a, axis=1))
+
+
+def test_the_least_edge_a_view_must_show_is_a_length_whatever_the_sampling(robi_catalog):
+    """min_points counts samples at the finest spacing (d / 80): a model sampled more sparsely
+    needs proportionally fewer of its own samples, so thinning the samples does not turn a
+    view that shows enough edge into one that says nothing."""
+    screw = _model(robi_catalog, "chrome_screw")
+    dense = model_edges(screw.mesh, screw.diameter, EdgeConfig(max_points=100_000))
+    sparse = model_edges(screw.mesh, screw.diameter, EdgeConfig(max_points=500))
+    assert dense.spacing == pytest.approx(screw.diameter / 80, rel=0.02)
+    assert dense.samples_for(12) == pytest.approx(12, rel=0.02)
+    length = len(sparse.points) * sparse.spacing
+    assert length == pytest.approx(len(dense.points) * dense.spacing, rel=1e-6)
+    assert sparse.samples_for(12) * sparse.spacing == pytest.approx(12 * screw.diameter / 80)
 
 
 @pytest.mark.parametrize("max_points", [2000, 100])
