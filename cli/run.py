@@ -142,14 +142,26 @@ def run_and_write(
     return report
 
 
-def _numeric_fields(cls) -> dict[str, type]:
-    """The int and float fields of a dataclass (the annotations are strings)."""
+def _switch(value: str) -> bool:
+    """A bool setting's value: 1 / true / on or 0 / false / off."""
+    word = value.strip().lower()
+    if word in ("1", "true", "on"):
+        return True
+    if word in ("0", "false", "off"):
+        return False
+    raise ValueError(value)
+
+
+def _numeric_fields(cls) -> dict[str, object]:
+    """The int, float and bool fields of a dataclass, each with its parser (the annotations
+    are strings); ``enabled`` is left out: the ablation flags switch it."""
     import dataclasses
 
+    parsers = {"int": int, "float": float, "float | None": float, "bool": _switch}
     return {
-        f.name: int if f.type == "int" else float
+        f.name: parsers[f.type]
         for f in dataclasses.fields(cls)
-        if f.type in ("int", "float", "float | None")
+        if f.type in parsers and f.name != "enabled"
     }
 
 
@@ -180,7 +192,8 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
         try:
             out[key] = numeric[key](value)
         except ValueError:
-            raise PosefuseError(f"--verification {pair!r}: {value!r} is not a number") from None
+            kind = "0 or 1" if numeric[key] is _switch else "a number"
+            raise PosefuseError(f"--verification {pair!r}: {value!r} is not {kind}") from None
     return out
 
 

@@ -53,8 +53,8 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    # edge samples of a model, at most (docs/verification.md, "Fewer edge samples": 1000 halves
-    # the step's cost and lost two chrome screws on the tuning set)
+    # edge samples of a model, at most (docs/verification.md, "Fewer edge samples": 1000 cut the
+    # step's cost by 30% and lost two chrome screws on the tuning set)
     max_points: int = 2000
 
     def __post_init__(self) -> None:

@@ -160,6 +160,10 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     assert verification_settings(["settled_margin=none"]) == {"settled_margin": None}
     assert verification_settings(["settled_margin=0.1"]) == {"settled_margin": 0.1}
     assert tracker_config(verification={"settled_margin": None}).verification.settled_margin is None
+    # a switch takes 0 or 1
+    assert verification_settings(["reuse_refinement=0"]) == {"reuse_refinement": False}
+    reuse = tracker_config(verification={"reuse_refinement": False}).verification
+    assert reuse.reuse_refinement is False
     # the edge settings it holds, by a dotted key
     edges = verification_settings(["edges.max_points=600", "edges.truncate_px=8"])
     assert edges == {"edges.max_points": 600, "edges.truncate_px": 8.0}
@@ -172,6 +176,7 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
         ("mask_weight=heavy", "'heavy' is not a number"),
         ("edges=1", "edges=1"),
         ("edges.max_faces_x=1", "edges.max_faces_x"),
+        ("reuse_refinement=maybe", "'maybe' is not 0 or 1"),
         ("enabled=0", "enabled=0"),
         ("mask_weight=none", "'none' is not a number"),  # only an optional setting is off
     ]:
