@@ -212,10 +212,11 @@ def tracker_config(
         edges = {k[len("edges.") :]: v for k, v in verification.items() if k.startswith("edges.")}
         verification_config = dataclasses.replace(config.verification, **own)
         if edges:
-            verification_config = dataclasses.replace(
-                verification_config,
-                edges=dataclasses.replace(verification_config.edges, **edges),
-            )
+            try:
+                edge_config = dataclasses.replace(verification_config.edges, **edges)
+            except ValueError as err:
+                raise PosefuseError(f"--verification edges.*: {err}") from None
+            verification_config = dataclasses.replace(verification_config, edges=edge_config)
         config = dataclasses.replace(config, verification=verification_config)
     if no_verify:
         config = dataclasses.replace(

@@ -58,7 +58,7 @@ class EdgeConfig:
     max_points: int = 2000
 
     def __post_init__(self) -> None:
-        if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0:
+        if self.roi_size < 16 or self.bins < 2 or self.truncate_px <= 0 or self.max_points < 1:
             raise ValueError(f"invalid edge config: {self}")
 
 
@@ -81,10 +81,12 @@ class ModelEdges:
 
     def samples_for(self, count_at_finest: float) -> float:
         """How many of this model's samples cover the edge length that ``count_at_finest``
-        samples cover at the finest spacing, diameter / 80 (the same for every ``max_points``)."""
+        samples cover at the finest spacing, diameter / 80 (the same for every ``max_points``);
+        a model sampled at that spacing (its last sample a little nearer) needs exactly the
+        count."""
         if self.spacing is None:
             return count_at_finest
-        return count_at_finest * (self.diameter / 80.0) / self.spacing
+        return count_at_finest * min(1.0, (self.diameter / 80.0) / self.spacing)
 
 
 @dataclass(frozen=True, eq=False)

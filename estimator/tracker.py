@@ -590,8 +590,9 @@ class MultiViewEstimator:
           view, whose costs depend on what it sees, never across views).
 
         A settled track then costs those hypotheses scored in its new views instead of in every
-        kept view, and no refinement. A mixture that changes is verified and refined as before:
-        keeping the refined pose then lost a part on the tuning sets (docs/verification.md)."""
+        kept view, and no refinement. A mixture that changes is verified as before (keeping the
+        refined pose without it lost a part on the tuning sets, docs/verification.md), and
+        refined unless the winner still holds the refinement (``_verify``)."""
         vcfg = self.config.verification
         refined = track.refined
         if vcfg.settled_margin is None or refined is None or not refined.accepted:
@@ -632,9 +633,11 @@ class MultiViewEstimator:
         (:mod:`estimator.verification`, :mod:`estimator.refinement`).
 
         Without new views (the mixture gained or lost a component), a winner whose basin holds
-        the last accepted refinement, at a translation that has moved less than
-        ``settled_translation_frac`` of the diameter from that refinement's prior, keeps it:
-        refining again over the same views from the same place would land where it did
+        the last accepted refinement (within ``accept_deg``, and its translation within
+        ``accept_frac`` of the diameter of today's), at a translation that has moved less than
+        ``settled_translation_frac`` of the diameter from that refinement's prior, keeps it: the
+        kept views are the ones it was refined over or ones that agreed with it (``_settled``),
+        so refining again from the same place would land where it did
         (``VerificationConfig.reuse_refinement``)."""
         mixture = track.mixture
         if mixture is None or not mixture.components or not track.edge_views:
@@ -672,7 +675,7 @@ class MultiViewEstimator:
         ):
             R_init, t_init = previous.R_world_obj, previous.t_world_obj
         if (
-            in_basin
+            R_init is not None  # in the winner's basin, and near today's translation
             and not new_views
             and vcfg.reuse_refinement
             and track.refined_t_prior is not None

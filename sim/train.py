@@ -226,10 +226,13 @@ class _Nets:
         loss_label = F.binary_cross_entropy_with_logits(crop_out[:, :1], label)
         loss_vec = (F.smooth_l1_loss(crop_out[:, 1:], vec, reduction="none") * label).sum()
         loss_vec = loss_vec / label.sum().clamp(min=1.0)
-        loss_vote = proxy_voting_loss(crop_out[:, 1:], label, vec)
         loss = loss_heat + loss_box + loss_label + 2.0 * loss_vec
         if self.config.vote_loss:
+            loss_vote = proxy_voting_loss(crop_out[:, 1:], label, vec)
             loss = loss + self.config.vote_loss * loss_vote
+        else:  # logged all the same: the curve then compares runs with it and without
+            with torch.no_grad():
+                loss_vote = proxy_voting_loss(crop_out[:, 1:].detach(), label, vec)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()

@@ -200,8 +200,8 @@ def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_ca
 def test_a_refinement_past_what_would_be_accepted_stops_there_with_the_same_answer(
     robi_catalog,
 ):
-    """Once the translation has moved farther than accept_frac, the result is refused however
-    the iterations end: stopping there returns what running on returns, in fewer steps."""
+    """Once the translation has moved farther than accept_frac, the refinement stops: here,
+    as running on, it ends refused (the start and the priors come back), in fewer steps."""
     strict = RefineConfig(accept_frac=0.001)
     *_, (R0, t0), stopped = _tube_refinement(robi_catalog, strict)
     *_, ran_on = _tube_refinement(

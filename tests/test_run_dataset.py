@@ -170,6 +170,11 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     nested = tracker_config(verification={**edges, "max_views": 3}).verification
     assert nested.edges.max_points == 600 and nested.edges.truncate_px == 8.0
     assert nested.edges.roi_size == VerificationConfig().edges.roi_size and nested.max_views == 3
+    # a value the edge settings refuse is a PosefuseError naming them
+
+    for bad in ({"edges.max_points": 0}, {"edges.roi_size": 8}):
+        with pytest.raises(PosefuseError, match="edges"):
+            tracker_config(verification=bad)
     for bad, says in [
         ("mask=1", "mask=1"),
         ("mask_weight", "KEY=VALUE"),

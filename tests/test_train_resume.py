@@ -280,3 +280,22 @@ def test_the_proxy_voting_loss_finds_the_center_and_weighs_a_vote_by_its_distanc
     # a crop without a part adds nothing and stays finite
     empty = proxy_voting_loss(turned, torch.zeros_like(L), torch.zeros_like(V))
     assert float(empty) == 0.0
+
+
+def test_a_resume_keeps_the_vote_loss_unless_told_and_logs_it_either_way(tmp_path):
+    """The proxy voting loss's weight is kept in the checkpoint: a resume that does not name
+    it goes on with it, one that does replaces it; the loss is logged with it off too."""
+    out = tmp_path / "v" / "m.onnx"
+    train(DEFAULT_CATALOG, out, _config(tmp_path, run_steps=3, vote_loss=0.5))
+    state = torch.load(out.with_suffix(".ckpt"), map_location="cpu", weights_only=False)
+    assert state["config"]["vote_loss"] == 0.5
+    assert state["curve"][-1]["loss"]["vote"] > 0
+    card = train(DEFAULT_CATALOG, out, _config(tmp_path, resume=str(out.with_suffix(".ckpt"))))
+    assert card["training"]["proxy_voting_loss_weight"] == 0.5
+    state = torch.load(out.with_suffix(".ckpt"), map_location="cpu", weights_only=False)
+    assert state["step"] == 6 and state["config"]["vote_loss"] == 0.5
+    off = tmp_path / "off" / "m.onnx"
+    card = train(DEFAULT_CATALOG, off, _config(tmp_path, run_steps=3))
+    assert card["training"]["proxy_voting_loss_weight"] == 0.0
+    state = torch.load(off.with_suffix(".ckpt"), map_location="cpu", weights_only=False)
+    assert state["config"]["vote_loss"] == 0.0 and state["curve"][-1]["loss"]["vote"] > 0
