@@ -656,21 +656,19 @@ class MultiViewEstimator:
             track.scores,
         )
         track.verdict = verdict
-        previous, track.refined = track.refined, None
         rcfg = self.config.refinement
+        previous, track.refined = track.refined, None
         if verdict is None or not rcfg.enabled:
             return
         lead = mixture.components[int(verdict.component[verdict.best])]
         R_start = verdict.R_world_obj[verdict.best]
         # the last refined pose, where it lies in the basin of today's start, is a warm start
         R_init = t_init = None
-        in_basin = (
+        if (
             previous is not None
             and previous.accepted
             and rotation_angle(previous.R_world_obj @ R_start.T) <= np.deg2rad(rcfg.accept_deg)
-        )
-        if in_basin and (
-            np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
+            and np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
             <= rcfg.accept_frac * edges.diameter
         ):
             R_init, t_init = previous.R_world_obj, previous.t_world_obj

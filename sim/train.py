@@ -325,6 +325,16 @@ class _Nets:
         model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
 
 
+def _cell_grid(g: int, dtype):
+    """(x, y) of every output cell, each (g, g) torch."""
+    import torch
+
+    ys, xs = torch.meshgrid(
+        torch.arange(g, dtype=dtype), torch.arange(g, dtype=dtype), indexing="ij"
+    )
+    return xs, ys
+
+
 def target_centers(label, vec):
     """Where each crop's target vectors meet, in output cells (x, y): the least-squares point
     closest to every labelled cell's line; exact for rendered targets, which all point at
@@ -337,10 +347,7 @@ def target_centers(label, vec):
     """
     import torch
 
-    g = label.shape[-1]
-    ys, xs = torch.meshgrid(
-        torch.arange(g, dtype=vec.dtype), torch.arange(g, dtype=vec.dtype), indexing="ij"
-    )
+    xs, ys = _cell_grid(label.shape[-1], vec.dtype)
     tx, ty, w = vec[:, 0], vec[:, 1], label[:, 0]
     # each line's normal projector (I - t t^T), summed over the labelled cells
     a11, a12, a22 = (
@@ -351,7 +358,7 @@ def target_centers(label, vec):
     b1 = (w * ((1 - tx * tx) * xs - tx * ty * ys)).sum((1, 2))
     b2 = (w * (-tx * ty * xs + (1 - ty * ty) * ys)).sum((1, 2))
     ridge = 1e-6 * (w.sum((1, 2)) + 1.0)
-    half = (g - 1) / 2
+    half = (label.shape[-1] - 1) / 2
     b1, b2 = b1 + ridge * half, b2 + ridge * half  # ridge pulls an empty crop to its center
     a11, a22 = a11 + ridge, a22 + ridge
     det = a11 * a22 - a12 * a12
@@ -371,11 +378,8 @@ def proxy_voting_loss(pred, label, vec):
     import torch
     import torch.nn.functional as F
 
-    g = label.shape[-1]
     center = target_centers(label, vec).detach()
-    ys, xs = torch.meshgrid(
-        torch.arange(g, dtype=pred.dtype), torch.arange(g, dtype=pred.dtype), indexing="ij"
-    )
+    xs, ys = _cell_grid(label.shape[-1], pred.dtype)
     dx = center[:, 0, None, None] - xs
     dy = center[:, 1, None, None] - ys
     unit = pred / pred.norm(dim=1, keepdim=True).clamp(min=1e-6)
