@@ -536,11 +536,26 @@ def test_only_the_samples_that_show_are_projected_as_all_would_be(robi_catalog):
     np.testing.assert_allclose(angle, angle_all[pose, sample], atol=1e-9)
 
 
+def _first_hit_hidden(edges, c_obj, idx):
+    """(len(idx),) bool, independently of pose_edges: whether the ray from the camera centre
+    c_obj (3,) to each sample idx first meets the mesh more than 0.5% of the diameter before
+    the sample (trimesh's ray casting, with its hit locations)."""
+    ray = edges.points[idx] - c_obj
+    dist = np.linalg.norm(ray, axis=1)
+    where, rays, _ = edges.mesh.ray.intersects_location(
+        np.broadcast_to(c_obj, (len(idx), 3)), ray / dist[:, None], multiple_hits=False
+    )
+    first = np.full(len(idx), np.inf)
+    first[rays] = np.linalg.norm(where - c_obj, axis=1)
+    return first < dist - 0.005 * edges.diameter
+
+
 def test_a_sample_hidden_by_the_part_is_the_first_hit_of_the_camera_ray(robi_catalog):
-    """pose_edges' occlusion test against an independent one: where the ray from the camera
-    to the sample first meets the mesh (trimesh's ray casting, with its hit locations)."""
+    """pose_edges' exact occlusion test (rays of every pose: occlusion_directions=0) against an
+    independent one: where the ray from the camera to the sample first meets the mesh."""
     model = _model(robi_catalog, "tube_fitting")
-    edges = _edges(model)
+    edges = model_edges(model.mesh, model.diameter, EdgeConfig(occlusion_directions=0))
+    assert edges.occlusion is None
     without_mesh = type(edges)(
         edges.points, edges.directions, edges.normals, edges.crease, edges.diameter, None
     )
@@ -550,19 +565,77 @@ def test_a_sample_hidden_by_the_part_is_the_first_hit_of_the_camera_ray(robi_cat
     assert np.all(active <= facing)
     hidden_somewhere = 0
     for n in range(len(R)):
-        c_obj = -R[n].T @ t[n]
         idx = np.flatnonzero(facing[n])
-        ray = edges.points[idx] - c_obj
-        dist = np.linalg.norm(ray, axis=1)
-        where, rays, _ = edges.mesh.ray.intersects_location(
-            np.broadcast_to(c_obj, (len(idx), 3)), ray / dist[:, None], multiple_hits=False
-        )
-        first = np.full(len(idx), np.inf)
-        first[rays] = np.linalg.norm(where - c_obj, axis=1)
-        hidden = first < dist - 0.005 * edges.diameter
+        hidden = _first_hit_hidden(edges, -R[n].T @ t[n], idx)
         hidden_somewhere += hidden.sum()
         assert np.array_equal(active[n, idx], ~hidden), n
     assert hidden_somewhere > 50  # the poses do hide samples: the test is not vacuous
+
+
+def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera(robi_catalog):
+    """The table's answer for a pose is the exact answer from the pose's viewpoint: equal to the
+    rays' where the camera stands at a viewpoint's centre, and close to them anywhere else (the
+    viewpoint a few degrees and a quarter of the distance away)."""
+    model = _model(robi_catalog, "tube_fitting")
+    edges = _edges(model)
+    table = edges.occlusion
+    assert table is not None and len(table.directions) == EdgeConfig().occlusion_directions
+    without_mesh = type(edges)(
+        edges.points, edges.directions, edges.normals, edges.crease, edges.diameter, None
+    )
+    R, t = _random_poses(model, 12, seed=6)
+    c_obj = -np.einsum("nji,nj->ni", R, t)
+    _, centres = table.viewpoints(c_obj)
+    t_at = -np.einsum("nij,nj->ni", R, centres)  # the same turns, the camera at the centres
+    for t_n, tolerance in ((t_at, 0.0), (t, 0.03)):
+        _, _, active, _ = pose_edges(edges, R, t_n)
+        _, _, facing, _ = pose_edges(without_mesh, R, t_n)
+        assert np.all(active <= facing)
+        differ = shown = hidden_somewhere = 0
+        for n in range(len(R)):
+            idx = np.flatnonzero(facing[n])
+            hidden = _first_hit_hidden(edges, -R[n].T @ t_n[n], idx)
+            differ += np.sum(active[n, idx] == hidden)
+            shown += len(idx)
+            hidden_somewhere += hidden.sum()
+        assert hidden_somewhere > 50
+        assert differ <= tolerance * shown, (differ, shown)
+
+
+def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catalog):
+    from posefuse.estimator.edges import OcclusionTable
+
+    model = _model(robi_catalog, "eye_bolt")
+    edges = _edges(model)
+    R, t = _random_poses(model, 40, seed=7)
+    c_obj = -np.einsum("nji,nj->ni", R, t)
+    facing = pose_edges(replace(edges, occlusion=None, mesh=None), R, t)[2]
+
+    def table(max_rows):
+        return OcclusionTable(
+            edges.points,
+            edges.mesh,
+            edges.diameter,
+            edges.occlusion.directions,
+            edges.occlusion.ratio,
+            max_rows,
+        )
+
+    forward = table(4096)
+    first = forward.hidden(c_obj, facing)
+    cast = forward.rays_cast
+    assert cast == facing.sum() and first.any()
+    again = forward.hidden(c_obj, facing)  # all known: no ray cast again
+    assert forward.rays_cast == cast and np.array_equal(again, first)
+    backward = table(4096).hidden(c_obj[::-1], facing[::-1])[::-1]
+    assert np.array_equal(backward, first)
+    # a table of 7 rows starts again six times over 40 viewpoints, answering the same
+    small = table(7)
+    in_turn = np.concatenate(
+        [small.hidden(c_obj[i : i + 5], facing[i : i + 5]) for i in range(0, 40, 5)]
+    )
+    assert np.array_equal(in_turn, first)
+    assert np.array_equal(table(3).hidden(c_obj[:5], facing[:5]), first[:5])  # more than it holds
 
 
 def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
