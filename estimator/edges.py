@@ -24,6 +24,7 @@ plus ``L * L`` for the mask: 83 kB a view at the defaults.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -141,16 +142,17 @@ class OcclusionTable:
         new = list(dict.fromkeys(k for k in keys if k not in self._row_of))
         if len(self._row_of) + len(new) > self.max_rows:
             self._row_of.clear()
-            self._known[:] = False
-            self._hidden[:] = False
+            self._known = np.zeros_like(self._known)  # fresh pages, taken again as filled
+            self._hidden = np.zeros_like(self._hidden)
             new = list(dict.fromkeys(keys))
         if len(new) > self.max_rows:  # more viewpoints in one call than the table holds
             return self._cast(centres, ask)
         for k in new:
             self._row_of[k] = len(self._row_of)
         rows = np.array([self._row_of[k] for k in keys], np.intp)
-        n_idx, p_idx = np.nonzero(ask & ~self._known[rows])
-        if len(n_idx):
+        need = ask & ~self._known[rows]
+        if need.any():
+            n_idx, p_idx = np.nonzero(need)
             hits = self._cast_pairs(centres[n_idx], p_idx)
             self._known[rows[n_idx], p_idx] = True
             self._hidden[rows[n_idx], p_idx] = hits
@@ -202,6 +204,19 @@ class ModelEdges:
     spacing: float | None = None
     # self-occlusion by viewpoint, filled as poses ask (None: rays cast for every pose)
     occlusion: OcclusionTable | None = None
+
+    @cached_property
+    def _facing_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """(3, 2P) the two face normals of every sample, contiguous for one matrix product, and
+        (P, 2) each face's plane offset p . n_k."""
+        P = len(self.points)
+        normals_t = np.ascontiguousarray(self.normals.reshape(-1, 3).T)
+        return normals_t, np.einsum("pki,pi->pk", self.normals, self.points).reshape(P, 2)
+
+    @cached_property
+    def _points_and_directions(self) -> np.ndarray:
+        """(P, 2, 3) each sample's point and edge direction, read together."""
+        return np.stack([self.points, self.directions], axis=1)
 
     def samples_for(self, count_at_finest: float) -> float:
         """How many of this model's samples cover the edge length that ``count_at_finest``
@@ -297,12 +312,12 @@ def pose_edges(
     """
     N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
-    # (p - c) . n_k = p . n_k - c . n_k, < 0 faces the camera: one (N, 3) x (3, 2P) product
-    offsets = np.einsum("pki,pi->pk", edges.normals, edges.points).reshape(-1)  # (2P,)
-    facing = (offsets[None] - c_obj @ edges.normals.reshape(-1, 3).T).reshape(N, P, 2)
-    f0, f1 = facing[..., 0], facing[..., 1]
-    contour = f0 * f1 < 0
-    active = contour | (edges.crease[None] & (np.minimum(f0, f1) < 0))
+    # (p - c) . n_k < 0 faces the camera, i.e. c . n_k > p . n_k: one (N, 3) x (3, 2P) product
+    normals_t, offsets = edges._facing_terms
+    toward = (c_obj @ normals_t).reshape(N, P, 2)
+    faces, turns_away = toward > offsets, toward < offsets  # (N, P, 2)
+    contour = (faces[..., 0] & turns_away[..., 1]) | (turns_away[..., 0] & faces[..., 1])
+    active = contour | (edges.crease[None] & (faces[..., 0] | faces[..., 1]))
     if edges.occlusion is not None:
         # hidden by the part itself, from the table of viewpoints
         active &= ~edges.occlusion.hidden(c_obj, active)
@@ -369,18 +384,21 @@ def project_shown(
     """
     pose, sample = np.nonzero(shown)
     M = len(pose)
-    pts_cam, dirs_cam = np.empty((M, 3)), np.empty((M, 3))
+    # per pose, K R and K t take a sample to homogeneous pixels q in one product: uv = q_xy / q_z
+    # (K's last row is 0 0 1, so q_z is the depth), and the edge's direction d to dq = K R d
+    A = np.asarray(K) @ R_cam_obj  # (N, 3, 3)
+    b = np.einsum("nij,nj->ni", K, t_cam_obj)  # (N, 3)
+    both = edges._points_and_directions
+    q = np.empty((M, 2, 3))
     starts = np.searchsorted(pose, np.arange(len(R_cam_obj) + 1))
     for n in np.flatnonzero(np.diff(starts)):
         sl = slice(starts[n], starts[n + 1])
-        pts_cam[sl] = edges.points[sample[sl]] @ R_cam_obj[n].T + t_cam_obj[n]
-        dirs_cam[sl] = edges.directions[sample[sl]] @ R_cam_obj[n].T
-    z = np.maximum(pts_cam[:, 2], 1e-6)
-    xy = pts_cam[:, :2] / z[:, None]
-    Kp = K[pose]
-    uv = np.einsum("mij,mj->mi", Kp[:, :2, :2], xy) + Kp[:, :2, 2]
-    dxy = (dirs_cam[:, :2] - xy * dirs_cam[:, 2:3]) / z[:, None]
-    duv = np.einsum("mij,mj->mi", Kp[:, :2, :2], dxy)
+        q[sl] = (both[sample[sl]].reshape(-1, 3) @ A[n].T).reshape(-1, 2, 3)
+        q[sl, 0] += b[n]
+    z = np.maximum(q[:, 0, 2], 1e-6)
+    uv = q[:, 0, :2] / z[:, None]
+    # d(uv) along the edge, up to the positive factor 1 / z: dq_xy - uv dq_z
+    duv = q[:, 1, :2] - uv * q[:, 1, 2:3]
     angle = np.mod(np.arctan2(duv[:, 1], duv[:, 0]), np.pi)
     return pose, sample, uv, angle
 
