@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
-from posefuse.estimator.geometry import hat, project_jacobian, rotation_angle, so3_exp, so3_log
+from posefuse.estimator.geometry import rotation_angle, so3_exp, so3_log
 
 __all__ = ["RefineConfig", "Refinement", "refine_pose"]
 
@@ -145,18 +145,26 @@ def _linearize(
     if not want_jacobian or len(live) == 0:
         return cost, H, g, sets
     v_l, s_l = view[read[live]], sample[read[live]]
-    p_obj = edges.points[s_l]
-    pts_cam = np.einsum("nij,nj->ni", R_cam[v_l], p_obj) + t_cam[v_l]  # (n, 3)
-    # d (x/z, y/z) / d p_cam, then each read's own RoI intrinsics: (n, 2, 3) pixels per metre
-    J_uv = stack.K[v_l, :2, :2] @ project_jacobian(pts_cam, np.eye(3))
-    grad_p = np.einsum("ni,nij->nj", grad[live], J_uv)  # (n, 3) d distance / d p_cam
-    R_cw = stack.R_cw[v_l]
-    # d p_cam / d (dt, dphi) = [R_cw, -R_cw hat(R p)]: (n, 3, 6)
-    dp = np.concatenate([R_cw, -R_cw @ hat(p_obj @ R.T)], axis=2)
-    J = np.einsum("nj,njk->nk", grad_p, dp)  # (n, 6)
+    a = edges.points[s_l] @ R.T  # (n, 3) R p: the sample turned, before the translation
+    pts_cam = np.einsum("nij,nj->ni", stack.R_cw[v_l], a) + t_cam[v_l]  # (n, 3)
+    # the gradient pulled back through the projection (geometry.project_jacobian, applied as a
+    # vector-Jacobian product): e = d distance / d (x/z, y/z), then d / d p_cam
+    e = np.einsum("ni,nij->nj", grad[live], stack.K[v_l, :2, :2])  # (n, 2)
+    inv_z = 1.0 / pts_cam[:, 2]
+    grad_p = np.column_stack(
+        [
+            e[:, 0] * inv_z,
+            e[:, 1] * inv_z,
+            -(e[:, 0] * pts_cam[:, 0] + e[:, 1] * pts_cam[:, 1]) * inv_z**2,
+        ]
+    )
+    # d p_cam / d (dt, dphi) = R_cw [I, -hat(R p)]: the world-frame gradient g_w = R_cw^T grad_p
+    # gives the row [g_w, (R p) x g_w]
+    g_w = np.einsum("nij,ni->nj", stack.R_cw[v_l], grad_p)  # (n, 3)
+    J = np.concatenate([g_w, np.cross(a, g_w)], axis=1)  # (n, 6)
     wl = w[live] * scale[live]
-    H = np.einsum("n,ni,nj->ij", wl, J, J)
-    g = np.einsum("n,n,ni->i", wl, d[live], J)
+    H = (J * wl[:, None]).T @ J
+    g = J.T @ (wl * d[live])
     return cost, H, g, sets
 
 
