@@ -170,9 +170,16 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     nested = tracker_config(verification={**edges, "max_views": 3}).verification
     assert nested.edges.max_points == 600 and nested.edges.truncate_px == 8.0
     assert nested.edges.roi_size == VerificationConfig().edges.roi_size and nested.max_views == 3
+    # the occlusion table off: rays cast for every pose
+    exact = tracker_config(verification=verification_settings(["edges.occlusion_directions=0"]))
+    assert exact.verification.edges.occlusion_directions == 0
     # a value the edge settings refuse is a PosefuseError naming them
-
-    for bad in ({"edges.max_points": 0}, {"edges.roi_size": 8}):
+    for bad in (
+        {"edges.max_points": 0},
+        {"edges.roi_size": 8},
+        {"edges.occlusion_directions": -1},
+        {"edges.occlusion_shell_ratio": 1.0},
+    ):
         with pytest.raises(PosefuseError, match="edges"):
             tracker_config(verification=bad)
     for bad, says in [
