@@ -4,9 +4,10 @@ Model side (:func:`model_edges`): points sampled along the edges of the mesh (de
 few thousand faces), each with its edge's 3D direction and the normals of the two faces that
 meet there. At a pose, a point lies on the *occluding contour* when one of its faces turns
 towards the camera and the other away; it lies on a *visible crease* when its faces meet at a
-sharp angle and one of them faces the camera (:func:`pose_edges`). Self-occlusion by other
-parts of the same object is not tested: for the convex-ish parts of a bin it rarely matters, and
-the chamfer below is truncated, so a hidden crease costs a bounded amount.
+sharp angle and one of them faces the camera (:func:`pose_edges`). A sample the part hides
+from itself is left out: the ray from the camera meets the mesh first. The answer depends only
+on where the camera stands around the part, so it is looked up by viewpoint
+(:class:`OcclusionTable`), cast once per viewpoint and sample.
 
 Image side (:func:`edge_view`): the view's region of interest is warped to a fixed size at a
 scale that makes the part's diameter span a fixed number of pixels (so the costs of a near and a
