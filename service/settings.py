@@ -78,8 +78,8 @@ class Settings(BaseSettings):
     ingest_bytes: int = 256 * 1024 * 1024  # payloads waiting, all cameras together
     image_queue: int = 2  # frames buffered per camera: the latest win when behind
     # verification of rotation hypotheses across views (docs/verification.md): more accurate,
-    # but 35 ms more per frame on average with 10 objects on 2 cores, and one camera at 10 Hz
-    # no longer keeps up (docs/verification.md), so off in the daemon unless asked for
+    # but about 30 ms more per frame on average with 10 objects on 2 cores, and one camera at
+    # 10 Hz loses 5.5% of its frames (docs/verification.md), so off in the daemon unless asked
     verify: bool = False
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
     max_cameras: int = 16  # at the limit, a camera that never completed a frame yields
