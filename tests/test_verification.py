@@ -602,6 +602,25 @@ def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera
         assert differ <= tolerance * shown, (differ, shown)
 
 
+def test_the_viewpoint_directions_cover_the_sphere_evenly():
+    """4096 Fibonacci directions: unit, and every direction within 2.5 degrees of one of them
+    (the table's answer comes from at most that far)."""
+    from scipy.spatial import cKDTree
+
+    from posefuse.estimator.edges import fibonacci_sphere
+
+    directions = fibonacci_sphere(4096)
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-12)
+    probe = np.random.default_rng(3).normal(size=(50_000, 3))
+    probe /= np.linalg.norm(probe, axis=1)[:, None]
+    chord, _ = cKDTree(directions).query(probe)
+    assert np.degrees(2 * np.arcsin(chord.max() / 2)) < 2.5
+    # even: no direction is the nearest for more than four times its share of the probes
+    _, nearest = cKDTree(directions).query(probe)
+    counts = np.bincount(nearest, minlength=4096)
+    assert counts.max() < 4 * 50_000 / 4096
+
+
 def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catalog):
     from posefuse.estimator.edges import OcclusionTable
 
