@@ -62,7 +62,7 @@ class EdgeConfig:
     max_points: int = 2000
     # self-occlusion is looked up per viewpoint (OcclusionTable): the camera's direction from the
     # part snapped to one of this many directions (about 3 degrees apart at 4096), its distance
-    # to a shell of radii in this ratio; 0 casts the rays of every pose instead
+    # to a shell of radii in this ratio, in (1, 4]; 0 casts the rays of every pose instead
     occlusion_directions: int = 4096
     occlusion_shell_ratio: float = 1.25
 
@@ -72,8 +72,9 @@ class EdgeConfig:
             or self.bins < 2
             or self.truncate_px <= 0
             or self.max_points < 1
+            or self.bins > 64
             or self.occlusion_directions < 0
-            or not self.occlusion_shell_ratio > 1.0
+            or not 1.0 < self.occlusion_shell_ratio <= 4.0
         ):
             raise ValueError(f"invalid edge config: {self}")
 
@@ -95,13 +96,15 @@ class OcclusionTable:
     That place is snapped to a *viewpoint*: its direction from the object's origin to the
     nearest of ``directions``, its distance to the nearest radius ``diameter * ratio**k``. A
     viewpoint's answer for a sample is the ray cast from the viewpoint's own camera centre to
-    the sample, made the first time a pose from that viewpoint shows the sample, and kept. The
-    answer thus depends on the viewpoint alone, never on which poses asked before: any order of
-    the same poses gives the same answers. At most ``max_rows`` viewpoints are kept; when full,
-    the table starts again (the answers stay the same, only their cost changes).
+    the sample, made the first time a pose from that viewpoint asks, and kept (:func:`pose_edges`
+    asks only for samples that show from the viewpoint as from the camera). The answer thus
+    depends on the viewpoint alone, never on which poses asked before: any order of the same
+    poses gives the same answers. At most ``max_rows`` viewpoints are kept, one byte per sample
+    each (``max_rows * P`` bytes at most, taken as rows fill); when full, the table starts
+    again (the answers stay the same, only their cost changes).
 
     points: (P, 3) the samples, object frame, metres; directions: (D, 3) unit; mesh: the mesh
-    the rays meet; diameter: metres; ratio: of consecutive radii, > 1.
+    the rays meet; diameter: metres; ratio: of consecutive radii, in (1, 4].
     """
 
     points: np.ndarray
@@ -112,58 +115,60 @@ class OcclusionTable:
     max_rows: int = 4096
     _tree: cKDTree = field(init=False, repr=False)
     _row_of: dict = field(init=False, repr=False, default_factory=dict)
-    _known: np.ndarray = field(init=False, repr=False)  # (max_rows, P) bool
-    _hidden: np.ndarray = field(init=False, repr=False)  # (max_rows, P) bool
+    # (max_rows, P) uint8 per viewpoint and sample: 0 not asked yet, 1 shows, 2 hidden
+    _answer: np.ndarray = field(init=False, repr=False)
     rays_cast: int = field(init=False, default=0)  # rays cast so far, for profiling
 
     def __post_init__(self) -> None:
+        if not 1.0 < self.ratio <= 4.0 or self.max_rows < 1:
+            raise ValueError(f"OcclusionTable: ratio in (1, 4] and max_rows >= 1, got {self}")
         self._tree = cKDTree(self.directions)
-        P = len(self.points)
-        # np.zeros: pages are taken only as viewpoints fill them
-        self._known = np.zeros((self.max_rows, P), bool)
-        self._hidden = np.zeros((self.max_rows, P), bool)
+        self._answer = np.zeros((self.max_rows, len(self.points)), np.uint8)  # pages as filled
 
     def viewpoints(self, c_obj: np.ndarray) -> tuple[list[tuple[int, int]], np.ndarray]:
         """The viewpoints of N camera centres c_obj (N, 3), object frame: their keys (shell,
-        direction) and their own camera centres (N, 3)."""
-        c = np.nan_to_num(np.asarray(c_obj, float).reshape(-1, 3))
+        direction) and their own camera centres (N, 3). A centre at the origin, or not finite,
+        gets the viewpoint of a camera one diameter away along +z."""
+        c = np.asarray(c_obj, float).reshape(-1, 3)
         r = np.linalg.norm(c, axis=1)
-        unit = np.where(r[:, None] > 0, c / np.maximum(r, 1e-300)[:, None], [0.0, 0.0, 1.0])
+        usable = np.isfinite(r) & (r > 0)
+        unit = np.where(usable[:, None], c / np.where(usable, r, 1.0)[:, None], [0.0, 0.0, 1.0])
         _, direction = self._tree.query(unit)
-        shell = np.clip(
-            np.round(np.log(np.maximum(r, 1e-9) / self.diameter) / np.log(self.ratio)), -64, 64
-        ).astype(int)
+        # the radius bounded (1e-3 to 1e6 diameters), not the shell's index, so any ratio snaps
+        # a camera to a radius within the ratio of its own
+        scaled = np.clip(np.where(usable, r, self.diameter) / self.diameter, 1e-3, 1e6)
+        shell = np.round(np.log(scaled) / np.log(self.ratio)).astype(int)
         centres = self.directions[direction] * (self.diameter * self.ratio**shell)[:, None]
         return list(zip(shell.tolist(), direction.tolist(), strict=True)), centres
 
-    def hidden(self, c_obj: np.ndarray, ask: np.ndarray) -> np.ndarray:
-        """(N, P) bool: of the samples ``ask`` (N, P) bool, those the part hides from the
-        viewpoint of each camera centre c_obj (N, 3); False where not asked."""
-        keys, centres = self.viewpoints(c_obj)
+    def hidden(
+        self, keys: list[tuple[int, int]], centres: np.ndarray, ask: np.ndarray
+    ) -> np.ndarray:
+        """(N, P) bool: of the samples ``ask`` (N, P) bool, those the part hides from each
+        viewpoint (keys and centres (N, 3) of :meth:`viewpoints`); False where not asked."""
         new = list(dict.fromkeys(k for k in keys if k not in self._row_of))
         if len(self._row_of) + len(new) > self.max_rows:
             self._row_of.clear()
-            self._known = np.zeros_like(self._known)  # fresh pages, taken again as filled
-            self._hidden = np.zeros_like(self._hidden)
+            self._answer = np.zeros(self._answer.shape, np.uint8)  # fresh pages
             new = list(dict.fromkeys(keys))
         if len(new) > self.max_rows:  # more viewpoints in one call than the table holds
-            return self._cast(centres, ask)
+            out = np.zeros(ask.shape, bool)
+            n_idx, p_idx = np.nonzero(ask)
+            out[n_idx, p_idx] = self._cast_pairs(centres[n_idx], p_idx)
+            return out
         for k in new:
             self._row_of[k] = len(self._row_of)
         rows = np.array([self._row_of[k] for k in keys], np.intp)
-        need = ask & ~self._known[rows]
+        answer = self._answer[rows]  # (N, P)
+        need = ask & (answer == 0)
         if need.any():
             n_idx, p_idx = np.nonzero(need)
-            hits = self._cast_pairs(centres[n_idx], p_idx)
-            self._known[rows[n_idx], p_idx] = True
-            self._hidden[rows[n_idx], p_idx] = hits
-        return self._hidden[rows] & ask
-
-    def _cast(self, centres: np.ndarray, ask: np.ndarray) -> np.ndarray:
-        out = np.zeros(ask.shape, bool)
-        n_idx, p_idx = np.nonzero(ask)
-        out[n_idx, p_idx] = self._cast_pairs(centres[n_idx], p_idx)
-        return out
+            # a viewpoint asked twice in one call casts each of its samples once
+            flat, first = np.unique(rows[n_idx] * len(self.points) + p_idx, return_index=True)
+            hits = self._cast_pairs(centres[n_idx[first]], p_idx[first])
+            self._answer.reshape(-1)[flat] = np.where(hits, 2, 1)
+            answer = self._answer[rows]
+        return (answer == 2) & ask
 
     def _cast_pairs(self, centres: np.ndarray, sample: np.ndarray) -> np.ndarray:
         """(M,) bool: whether the mesh lies between each sample (M,) and its camera centre
@@ -296,6 +301,15 @@ def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> M
     )
 
 
+def _facing(edges: ModelEdges, c_obj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which of each sample's two faces turn towards, and which away from, N camera centres
+    c_obj (N, 3), object frame: (N, P, 2) bool each (a face edge-on to the camera is neither).
+    (p - c) . n_k < 0 faces the camera, i.e. c . n_k > p . n_k: one (N, 3) x (3, 2P) product."""
+    normals_t, offsets = edges._facing_terms
+    toward = (c_obj @ normals_t).reshape(len(c_obj), len(edges.points), 2)
+    return toward > offsets, toward < offsets
+
+
 def pose_edges(
     edges: ModelEdges, R_cam_obj: np.ndarray, t_cam_obj: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -313,15 +327,24 @@ def pose_edges(
     """
     N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
-    # (p - c) . n_k < 0 faces the camera, i.e. c . n_k > p . n_k: one (N, 3) x (3, 2P) product
-    normals_t, offsets = edges._facing_terms
-    toward = (c_obj @ normals_t).reshape(N, P, 2)
-    faces, turns_away = toward > offsets, toward < offsets  # (N, P, 2)
+    faces, turns_away = _facing(edges, c_obj)
     contour = (faces[..., 0] & turns_away[..., 1]) | (turns_away[..., 0] & faces[..., 1])
     active = contour | (edges.crease[None] & (faces[..., 0] | faces[..., 1]))
-    if edges.occlusion is not None:
-        # hidden by the part itself, from the table of viewpoints
-        active &= ~edges.occlusion.hidden(c_obj, active)
+    if edges.mesh is not None and edges.occlusion is not None:
+        # hidden by the part itself, from the table of viewpoints, where the sample turns a
+        # face to the viewpoint as well; a sample that does not (a face nearly edge-on to the
+        # camera, turned away from a viewpoint a degree or two off) would send the
+        # viewpoint's ray into the part, and casts its own ray from the camera instead
+        keys, centres = edges.occlusion.viewpoints(c_obj)
+        faces_there, _ = _facing(edges, centres)
+        shared = active & (faces_there[..., 0] | faces_there[..., 1])
+        hidden = edges.occlusion.hidden(keys, centres, shared)
+        n_idx, p_idx = np.nonzero(active & ~shared)
+        if len(n_idx):
+            hidden[n_idx, p_idx] = _hidden_from(
+                edges.mesh, edges.points[p_idx], c_obj[n_idx], edges.diameter
+            )
+        active &= ~hidden
         contour &= active
     elif edges.mesh is not None:
         # hidden by the part itself: the ray from the camera meets the surface first
@@ -475,7 +498,7 @@ def edge_view(
     dt = np.empty((config.bins, L, L), np.float32)
     for k in range(config.bins):
         # the 5x5 mask's distance is within 2% of the exact one at a quarter of its cost
-        # (docs/verification.md, "Cheaper steps")
+        # (docs/verification.md, "Self-occlusion by viewpoint, and cheaper steps")
         dt[k] = cv2.distanceTransform((b != k).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     # orientation term: min over bins of distance + penalty * circular bin difference
     lam = np.float32(config.bin_penalty_px)

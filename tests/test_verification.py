@@ -586,6 +586,11 @@ def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera
     R, t = _random_poses(model, 12, seed=6)
     c_obj = -np.einsum("nji,nj->ni", R, t)
     _, centres = table.viewpoints(c_obj)
+    # each viewpoint within 2.5 degrees and half a shell's ratio of its camera
+    cos = np.sum(centres * c_obj, axis=1) / np.linalg.norm(centres, axis=1)
+    assert np.all(np.degrees(np.arccos(np.minimum(cos / np.linalg.norm(c_obj, axis=1), 1))) < 2.5)
+    ratio = np.linalg.norm(centres, axis=1) / np.linalg.norm(c_obj, axis=1)
+    assert np.all(np.abs(np.log(ratio)) <= 0.5 * np.log(table.ratio) + 1e-9)
     t_at = -np.einsum("nij,nj->ni", R, centres)  # the same turns, the camera at the centres
     for t_n, tolerance in ((t_at, 0.0), (t, 0.03)):
         _, _, active, _ = pose_edges(edges, R, t_n)
@@ -621,6 +626,23 @@ def test_the_viewpoint_directions_cover_the_sphere_evenly():
     assert counts.max() < 4 * 50_000 / 4096
 
 
+def test_the_occlusion_table_hides_nothing_of_a_convex_part():
+    """A convex part hides none of the samples it shows. A viewpoint a degree or two off the
+    camera sees a face edge-on to the camera as turned away, and its ray from a contour sample
+    would enter the part: such samples cast their own ray instead, so no contour is lost."""
+    for sections in (16, 64):
+        mesh = trimesh.creation.cylinder(radius=0.01, height=0.04, sections=sections)
+        diameter = float(np.linalg.norm([0.02, 0.04]))
+        edges = model_edges(mesh, diameter, EdgeConfig())
+        assert edges.occlusion is not None
+        R = np.array([so3_exp(v) for v in np.random.default_rng(8).normal(0.0, 1.5, (300, 3))])
+        t = np.tile([0.0, 0.0, 8 * diameter], (300, 1))
+        _, _, active, contour = pose_edges(edges, R, t)
+        _, _, shown, on_contour = pose_edges(replace(edges, occlusion=None, mesh=None), R, t)
+        assert on_contour.sum() > 1000  # the poses do show contours: the test is not vacuous
+        assert np.array_equal(active, shown) and np.array_equal(contour, on_contour), sections
+
+
 def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catalog):
     from posefuse.estimator.edges import OcclusionTable
 
@@ -628,6 +650,8 @@ def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catal
     edges = _edges(model)
     R, t = _random_poses(model, 40, seed=7)
     c_obj = -np.einsum("nji,nj->ni", R, t)
+    keys, centres = edges.occlusion.viewpoints(c_obj)
+    assert len(set(keys)) == 40
     facing = pose_edges(replace(edges, occlusion=None, mesh=None), R, t)[2]
 
     def table(max_rows):
@@ -640,21 +664,30 @@ def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catal
             max_rows,
         )
 
+    def ask(tab, sl):
+        return tab.hidden(keys[sl], centres[sl], facing[sl])
+
     forward = table(4096)
-    first = forward.hidden(c_obj, facing)
+    first = ask(forward, slice(None))
     cast = forward.rays_cast
     assert cast == facing.sum() and first.any()
-    again = forward.hidden(c_obj, facing)  # all known: no ray cast again
+    again = ask(forward, slice(None))  # all known: no ray cast again
     assert forward.rays_cast == cast and np.array_equal(again, first)
-    backward = table(4096).hidden(c_obj[::-1], facing[::-1])[::-1]
-    assert np.array_equal(backward, first)
-    # a table of 7 rows starts again six times over 40 viewpoints, answering the same
+    backward = table(4096)
+    assert np.array_equal(ask(backward, slice(None, None, -1))[::-1], first)
+    # one viewpoint asked twice in one call casts once
+    twice = table(4096)
+    both = twice.hidden(keys[:1] * 2, np.repeat(centres[:1], 2, 0), np.repeat(facing[:1], 2, 0))
+    assert twice.rays_cast == facing[0].sum() and np.array_equal(both, np.repeat(first[:1], 2, 0))
+    # a table of 7 rows starts again at every call after the first (5 new viewpoints each),
+    # answering the same
     small = table(7)
-    in_turn = np.concatenate(
-        [small.hidden(c_obj[i : i + 5], facing[i : i + 5]) for i in range(0, 40, 5)]
-    )
-    assert np.array_equal(in_turn, first)
-    assert np.array_equal(table(3).hidden(c_obj[:5], facing[:5]), first[:5])  # more than it holds
+    in_turn = np.concatenate([ask(small, slice(i, i + 5)) for i in range(0, 40, 5)])
+    assert np.array_equal(in_turn, first) and len(small._row_of) == 5
+    assert np.array_equal(ask(table(3), slice(0, 5)), first[:5])  # more than it holds
+    # a camera at the origin, or not finite, still gets a viewpoint
+    _, odd = edges.occlusion.viewpoints(np.array([[np.nan, 0.0, 0.0], [0.0, 0.0, 0.0]]))
+    assert np.all(np.isfinite(odd))
 
 
 def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
