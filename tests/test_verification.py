@@ -1239,3 +1239,17 @@ def test_edge_orientation_bins_follow_a_circle():
     cv2.circle(faint, (100, 100), 25, (84, 84, 84), -1, lineType=cv2.LINE_AA)
     view = edge_view(faint, K, np.eye(4), np.array([0.0, 0.0, 0.5]), 0.05, config)
     assert np.all(view.dcdt == 255)
+
+
+def test_the_occlusion_agreement_bench_counts_what_it_says(robi_catalog):
+    """bench.occlusion_agreement: the differences are facing samples, the contour's are
+    within the shown ones, and the same seed gives the same counts."""
+    from posefuse.bench.occlusion_agreement import agreement
+
+    model = _model(robi_catalog, "tube_fitting")
+    row = agreement(model, 8, seed=2)
+    assert row == agreement(model, 8, seed=2)
+    assert row["facing"] > row["contour"] > 0
+    assert row["shown, rays hide"] + row["hidden, rays show"] < 0.05 * row["facing"]
+    assert row["contour shown, rays hide"] <= row["shown, rays hide"]
+    assert row["contour hidden, rays show"] <= row["hidden, rays show"]
