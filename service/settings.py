@@ -79,7 +79,8 @@ class Settings(BaseSettings):
     image_queue: int = 2  # frames buffered per camera: the latest win when behind
     # verification of rotation hypotheses across views (docs/verification.md): more accurate,
     # but about 30 ms more per frame on average with 10 objects on 2 cores, and one camera at
-    # 10 Hz loses 5.5% of its frames (docs/verification.md), so off in the daemon unless asked
+    # 10 Hz keeps up only just, depending on the machine (docs/verification.md), so off in the
+    # daemon unless asked for
     verify: bool = False
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
     max_cameras: int = 16  # at the limit, a camera that never completed a frame yields
