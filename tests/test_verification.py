@@ -573,8 +573,8 @@ def test_a_sample_hidden_by_the_part_is_the_first_hit_of_the_camera_ray(robi_cat
 
 
 def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera(robi_catalog):
-    """The table's answer for a pose is the exact answer from the pose's viewpoint: equal to the
-    rays' where the camera stands at a viewpoint's centre, and close to them anywhere else (the
+    """The table's answer for a pose is the exact answer from the pose's viewpoint: the rays'
+    where the camera stands at a viewpoint's centre, and close to them anywhere else (the
     viewpoint a few degrees and a quarter of the distance away)."""
     model = _model(robi_catalog, "tube_fitting")
     edges = _edges(model)
@@ -592,7 +592,9 @@ def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera
     ratio = np.linalg.norm(centres, axis=1) / np.linalg.norm(c_obj, axis=1)
     assert np.all(np.abs(np.log(ratio)) <= 0.5 * np.log(table.ratio) + 1e-9)
     t_at = -np.einsum("nij,nj->ni", R, centres)  # the same turns, the camera at the centres
-    for t_n, tolerance in ((t_at, 0.0), (t, 0.03)):
+    # at the centres the same rays are cast (up to rounding of the camera centre: a grazing ray
+    # may fall either way on another CPU, hence 0.2%)
+    for t_n, tolerance in ((t_at, 0.002), (t, 0.03)):
         _, _, active, _ = pose_edges(edges, R, t_n)
         _, _, facing, _ = pose_edges(without_mesh, R, t_n)
         assert np.all(active <= facing)
@@ -1253,3 +1255,18 @@ def test_the_occlusion_agreement_bench_counts_what_it_says(robi_catalog):
     assert row["shown, rays hide"] + row["hidden, rays show"] < 0.05 * row["facing"]
     assert row["contour shown, rays hide"] <= row["shown, rays hide"]
     assert row["contour hidden, rays show"] <= row["hidden, rays show"]
+
+
+def test_the_edge_maps_distance_is_within_a_fifth_of_a_pixel_of_the_exact_one():
+    """The 5 x 5 mask's distance transform, as edge_view takes it, against the exact one on
+    scattered edge pixels: within 0.2 px wherever the maps are read (up to the 10 px truncation)."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    src = np.ones((96, 96), np.uint8)
+    src[rng.integers(0, 96, 40), rng.integers(0, 96, 40)] = 0
+    exact = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    mask5 = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_5)
+    read = exact <= CONFIG.edges.truncate_px
+    assert read.mean() > 0.5
+    assert np.abs(mask5 - exact)[read].max() < 0.2
