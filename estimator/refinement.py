@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
-from posefuse.estimator.geometry import rotation_angle, so3_exp, so3_log
+from posefuse.estimator.geometry import project_jacobian, rotation_angle, so3_exp, so3_log
 
 __all__ = ["RefineConfig", "Refinement", "refine_pose"]
 
@@ -147,17 +147,10 @@ def _linearize(
     v_l, s_l = view[read[live]], sample[read[live]]
     a = edges.points[s_l] @ R.T  # (n, 3) R p: the sample turned, before the translation
     pts_cam = np.einsum("nij,nj->ni", stack.R_cw[v_l], a) + t_cam[v_l]  # (n, 3)
-    # the gradient pulled back through the projection (geometry.project_jacobian, applied as a
-    # vector-Jacobian product): e = d distance / d (x/z, y/z), then d / d p_cam
+    # the gradient pulled back through the projection: e = d distance / d (x/z, y/z) through
+    # each read's RoI intrinsics, then through geometry.project_jacobian (at K = I)
     e = np.einsum("ni,nij->nj", grad[live], stack.K[v_l, :2, :2])  # (n, 2)
-    inv_z = 1.0 / pts_cam[:, 2]
-    grad_p = np.column_stack(
-        [
-            e[:, 0] * inv_z,
-            e[:, 1] * inv_z,
-            -(e[:, 0] * pts_cam[:, 0] + e[:, 1] * pts_cam[:, 1]) * inv_z**2,
-        ]
-    )
+    grad_p = np.einsum("ni,nij->nj", e, project_jacobian(pts_cam, np.eye(3)))  # (n, 3)
     # d p_cam / d (dt, dphi) = R_cw [I, -hat(R p)]: the world-frame gradient g_w = R_cw^T grad_p
     # gives the row [g_w, (R p) x g_w]
     g_w = np.einsum("nij,ni->nj", stack.R_cw[v_l], grad_p)  # (n, 3)
