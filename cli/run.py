@@ -166,12 +166,14 @@ def _numeric_fields(cls) -> dict[str, object]:
 
 
 def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
-    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields, or
-    ``edges.KEY`` for the EdgeConfig it holds (an optional one, such as ``settled_margin``,
-    also takes ``none``); a PosefuseError names a malformed pair or an unknown field."""
+    """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields,
+    ``edges.KEY`` for the EdgeConfig it holds, or ``refinement.KEY`` for the RefineConfig (an
+    optional one, such as ``settled_margin``, also takes ``none``); a PosefuseError names a
+    malformed pair or an unknown field."""
     import dataclasses
 
     from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.refinement import RefineConfig
     from posefuse.estimator.verification import VerificationConfig
 
     optional = {
@@ -179,6 +181,7 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     }  # "none" switches it off
     numeric = _numeric_fields(VerificationConfig)
     numeric.update({f"edges.{k}": t for k, t in _numeric_fields(EdgeConfig).items()})
+    numeric.update({f"refinement.{k}": t for k, t in _numeric_fields(RefineConfig).items()})
     out: dict[str, float | None] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")
@@ -208,9 +211,24 @@ def tracker_config(
 
     config = TrackerConfig()
     if verification:
-        own = {k: v for k, v in verification.items() if not k.startswith("edges.")}
+        refine = {
+            k[len("refinement.") :]: v
+            for k, v in verification.items()
+            if k.startswith("refinement.")
+        }
+        if refine:
+            try:
+                config = dataclasses.replace(
+                    config, refinement=dataclasses.replace(config.refinement, **refine)
+                )
+            except ValueError as err:
+                raise PosefuseError(f"--verification refinement.*: {err}") from None
+        own = {k: v for k, v in verification.items() if not k.startswith(("edges.", "refinement."))}
         edges = {k[len("edges.") :]: v for k, v in verification.items() if k.startswith("edges.")}
-        verification_config = dataclasses.replace(config.verification, **own)
+        try:
+            verification_config = dataclasses.replace(config.verification, **own)
+        except ValueError as err:
+            raise PosefuseError(f"--verification: {err}") from None
         if edges:
             try:
                 edge_config = dataclasses.replace(verification_config.edges, **edges)
@@ -448,14 +466,14 @@ def register(subparsers) -> None:
     p.add_argument(
         "--no-refine",
         action="store_true",
-        help="verify across views, but do not refine (refinement is off by default already)",
+        help="verify across views, but do not refine",
     )
     p.add_argument(
         "--verification",
         action="append",
         metavar="KEY=VALUE",
-        help="replace a verification setting, e.g. mask_weight=2.0, or settled_margin=none to "
-        "verify at every new view (repeatable; for tuning)",
+        help="replace a verification setting, e.g. mask_weight=2.0, settled_margin=none to "
+        "verify at every new view, edges.KEY=V or refinement.KEY=V (repeatable; for tuning)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

@@ -142,10 +142,17 @@ class OcclusionTable:
         return list(zip(shell.tolist(), direction.tolist(), strict=True)), centres
 
     def hidden(
-        self, keys: list[tuple[int, int]], centres: np.ndarray, ask: np.ndarray
+        self,
+        keys: list[tuple[int, int]],
+        centres: np.ndarray,
+        ask: np.ndarray,
+        columns: np.ndarray | None = None,
     ) -> np.ndarray:
-        """(N, P) bool: of the samples ``ask`` (N, P) bool, those the part hides from each
-        viewpoint (keys and centres (N, 3) of :meth:`viewpoints`); False where not asked."""
+        """(N, Q) bool: of the samples ``ask`` (N, Q) bool, those the part hides from each
+        viewpoint (keys and centres (N, 3) of :meth:`viewpoints`); False where not asked.
+        ``columns`` (Q,) names the samples the Q columns stand for (None: all P, in order), so a
+        subset of the samples shares the answers of the whole (:meth:`ModelEdges.subset`)."""
+        cols = np.arange(len(self.points)) if columns is None else np.asarray(columns, np.intp)
         new = list(dict.fromkeys(k for k in keys if k not in self._row_of))
         if len(self._row_of) + len(new) > self.max_rows:
             self._row_of.clear()
@@ -153,21 +160,22 @@ class OcclusionTable:
             new = list(dict.fromkeys(keys))
         if len(new) > self.max_rows:  # more viewpoints in one call than the table holds
             out = np.zeros(ask.shape, bool)
-            n_idx, p_idx = np.nonzero(ask)
-            out[n_idx, p_idx] = self._cast_pairs(centres[n_idx], p_idx)
+            n_idx, q_idx = np.nonzero(ask)
+            out[n_idx, q_idx] = self._cast_pairs(centres[n_idx], cols[q_idx])
             return out
         for k in new:
             self._row_of[k] = len(self._row_of)
         rows = np.array([self._row_of[k] for k in keys], np.intp)
-        answer = self._answer[rows]  # (N, P)
+        # (N, Q): every column of the rows when all are asked for, else the columns named
+        answer = self._answer[rows] if columns is None else self._answer[np.ix_(rows, cols)]
         need = ask & (answer == 0)
         if need.any():
-            n_idx, p_idx = np.nonzero(need)
+            n_idx, q_idx = np.nonzero(need)
             # a viewpoint asked twice in one call casts each of its samples once
-            flat, first = np.unique(rows[n_idx] * len(self.points) + p_idx, return_index=True)
-            hits = self._cast_pairs(centres[n_idx[first]], p_idx[first])
+            flat, first = np.unique(rows[n_idx] * len(self.points) + cols[q_idx], return_index=True)
+            hits = self._cast_pairs(centres[n_idx[first]], cols[q_idx[first]])
             self._answer.reshape(-1)[flat] = np.where(hits, 2, 1)
-            answer = self._answer[rows]
+            answer = self._answer[rows] if columns is None else self._answer[np.ix_(rows, cols)]
         return (answer == 2) & ask
 
     def _cast_pairs(self, centres: np.ndarray, sample: np.ndarray) -> np.ndarray:
@@ -210,6 +218,39 @@ class ModelEdges:
     spacing: float | None = None
     # self-occlusion by viewpoint, filled as poses ask (None: rays cast for every pose)
     occlusion: OcclusionTable | None = None
+    # which of the table's samples these are (None: all of them, in order; see subset)
+    occlusion_columns: np.ndarray | None = None
+    _subsets: dict = field(default_factory=dict, repr=False)
+
+    def subset(self, stride: int) -> ModelEdges:
+        """Every ``stride``-th sample (stride 1: this model itself), as a model of its own whose
+        spacing is ``stride`` times wider; it shares the mesh and the occlusion table, so what
+        one has cast the other reads. Made once per stride and kept.
+
+        Returns:
+            ModelEdges of ceil(P / stride) samples.
+        """
+        if stride < 1:
+            raise ValueError(f"ModelEdges.subset: stride must be >= 1, got {stride}")
+        if stride == 1:
+            return self
+        if stride not in self._subsets:
+            take = np.arange(0, len(self.points), stride)
+            parent_columns = (
+                take if self.occlusion_columns is None else self.occlusion_columns[take]
+            )
+            self._subsets[stride] = ModelEdges(
+                self.points[take],
+                self.directions[take],
+                self.normals[take],
+                self.crease[take],
+                self.diameter,
+                self.mesh,
+                None if self.spacing is None else self.spacing * stride,
+                self.occlusion,
+                parent_columns,
+            )
+        return self._subsets[stride]
 
     @cached_property
     def _facing_terms(self) -> tuple[np.ndarray, np.ndarray]:
@@ -338,7 +379,7 @@ def pose_edges(
         keys, centres = edges.occlusion.viewpoints(c_obj)
         faces_there, _ = _facing(edges, centres)
         shared = active & (faces_there[..., 0] | faces_there[..., 1])
-        hidden = edges.occlusion.hidden(keys, centres, shared)
+        hidden = edges.occlusion.hidden(keys, centres, shared, edges.occlusion_columns)
         n_idx, p_idx = np.nonzero(active & ~shared)
         if len(n_idx):
             hidden[n_idx, p_idx] = _hidden_from(

@@ -52,6 +52,13 @@ class RefineConfig:
     # result would be refused unless the prior pulled it back, which changed no score on the
     # tuning and held-out sets (docs/verification.md)
     stop_when_refused: bool = True
+    # every n-th edge sample is read (ModelEdges.subset), each standing for n samples of the
+    # full sampling: a view counts at most points_per_view samples' information either way
+    sample_stride: int = 1
+
+    def __post_init__(self) -> None:
+        if self.sample_stride < 1 or self.iterations < 1:
+            raise ValueError(f"invalid refinement config: {self}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,23 +144,39 @@ def _linearize(
     group = view[read] * 3 + term  # (view, term) of each read
     n = np.bincount(group, minlength=3 * V)
     term_weight = np.array([1.0, crease_weight, mask_weight])[term]
-    scale = term_weight * np.minimum(1.0, config.points_per_view / n[group]) / config.sigma_px**2
+    # each sample read stands for sample_stride of the full sampling, up to points_per_view
+    # samples' worth per view and term
+    scale = (
+        term_weight
+        * np.minimum(config.sample_stride, config.points_per_view / n[group])
+        / config.sigma_px**2
+    )
     rho, w = _robust(np.minimum(d, truncate), config.huber_px)
     cost = float(np.sum(scale * rho))
     H, g = np.zeros((6, 6)), np.zeros(6)
     live = np.flatnonzero(d < truncate * 0.999)
     if not want_jacobian or len(live) == 0:
         return cost, H, g, sets
+    # the live reads grouped by view (the order of the rows does not change H or g), so that
+    # each view's camera and intrinsics apply to its rows in one product
+    live = live[np.argsort(view[read[live]], kind="stable")]
     v_l, s_l = view[read[live]], sample[read[live]]
+    bounds = np.searchsorted(v_l, np.arange(V + 1))
     a = edges.points[s_l] @ R.T  # (n, 3) R p: the sample turned, before the translation
-    pts_cam = np.einsum("nij,nj->ni", stack.R_cw[v_l], a) + t_cam[v_l]  # (n, 3)
-    # the gradient pulled back through the projection: e = d distance / d (x/z, y/z) through
-    # each read's RoI intrinsics, then through geometry.project_jacobian (at K = I)
-    e = np.einsum("ni,nij->nj", grad[live], stack.K[v_l, :2, :2])  # (n, 2)
+    pts_cam, e = np.empty_like(a), np.empty((len(live), 2))
+    for v in np.flatnonzero(np.diff(bounds)):
+        rows = slice(bounds[v], bounds[v + 1])
+        pts_cam[rows] = a[rows] @ stack.R_cw[v].T + t_cam[v]
+        # the gradient pulled back through the view's RoI intrinsics: d distance / d (x/z, y/z)
+        e[rows] = grad[live[rows]] @ stack.K[v, :2, :2]
+    # then through geometry.project_jacobian (at K = I)
     grad_p = np.einsum("ni,nij->nj", e, project_jacobian(pts_cam, np.eye(3)))  # (n, 3)
     # d p_cam / d (dt, dphi) = R_cw [I, -hat(R p)]: the world-frame gradient g_w = R_cw^T grad_p
     # gives the row [g_w, (R p) x g_w]
-    g_w = np.einsum("nij,ni->nj", stack.R_cw[v_l], grad_p)  # (n, 3)
+    g_w = np.empty_like(grad_p)
+    for v in np.flatnonzero(np.diff(bounds)):
+        rows = slice(bounds[v], bounds[v + 1])
+        g_w[rows] = grad_p[rows] @ stack.R_cw[v]
     J = np.concatenate([g_w, np.cross(a, g_w)], axis=1)  # (n, 6)
     wl = w[live] * scale[live]
     H = (J * wl[:, None]).T @ J
@@ -189,6 +212,7 @@ def refine_pose(
         to start instead of the start (the priors stay at R_start and t_prior), taken only where
         it costs less than the start.
     """
+    edges = edges.subset(config.sample_stride)
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))
     info_R = V @ np.diag(1.0 / np.maximum(w_eig, floor)) @ V.T

@@ -77,6 +77,13 @@ class VerificationConfig:
     # a verification without new views whose winner holds the last refinement in its basin
     # keeps that refinement instead of refining again (the tracker's _verify)
     reuse_refinement: bool = True
+    # every n-th edge sample is scored (ModelEdges.subset); a view too short of edge to say
+    # anything is judged by its length of edge (min_points), whatever the sampling
+    sample_stride: int = 1
+
+    def __post_init__(self) -> None:
+        if self.sample_stride < 1 or self.max_views < 1:
+            raise ValueError(f"invalid verification config: {self}")
 
 
 @dataclass(eq=False)
@@ -265,6 +272,7 @@ def score_hypotheses(
     H, V = len(R_world_obj), len(views)
     if V == 0:
         return np.zeros((H, 0))
+    edges = edges.subset(config.sample_stride)
     t_world_obj = np.broadcast_to(t_world_obj, (H, 3))
     R_cw = np.array([v.T_cam_world[:3, :3] for v in views])  # (V, 3, 3)
     t_cw = np.array([v.T_cam_world[:3, 3] for v in views])  # (V, 3)

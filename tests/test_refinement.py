@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from test_verification import CONFIG, _edges, _tube
 
 from posefuse.estimator.edges import EdgeView, ModelEdges
@@ -46,7 +47,10 @@ def _refine_from(model, edges, views, R0, t0, config, **kwargs):
     )
 
 
-def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog):
+@pytest.mark.parametrize("stride", [1, 3])
+def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog, stride):
+    """From 10 degrees and 0.05 d off, back within 2 degrees and 0.02 d; also reading every
+    third edge sample only (RefineConfig.sample_stride), each standing for three."""
     model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
     discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
@@ -59,7 +63,8 @@ def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalo
         R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
         t0 = t_true + shift
         # the prior sits where the start is: it does not know the truth
-        out = _refine_from(model, edges, views, R0, t0, RefineConfig(iterations=20))
+        config = RefineConfig(iterations=20, sample_stride=stride)
+        out = _refine_from(model, edges, views, R0, t0, config)
         assert out.accepted and out.cost < out.cost_start
         _, angle = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
         assert np.rad2deg(angle) < 2.0
@@ -362,3 +367,12 @@ def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance()
     r0, r1 = t0 - t_prior, out.t_world_obj - t_prior
     prior_drop = float(r0 @ np.linalg.solve(cov_t, r0) - r1 @ np.linalg.solve(cov_t, r1))
     np.testing.assert_allclose(out.cost_start - out.cost, prior_drop, rtol=1e-9)
+
+
+def test_a_sample_stride_below_one_is_refused():
+    with pytest.raises(ValueError, match="refinement config"):
+        RefineConfig(sample_stride=0)
+    from posefuse.estimator.verification import VerificationConfig
+
+    with pytest.raises(ValueError, match="verification config"):
+        VerificationConfig(sample_stride=0)

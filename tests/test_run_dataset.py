@@ -174,6 +174,18 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     exact = tracker_config(verification=verification_settings(["edges.occlusion_directions=0"]))
     assert exact.verification.edges.occlusion_directions == 0
     # a value the edge settings refuse is a PosefuseError naming them
+    # the refinement's settings, by a dotted key too
+    refine = verification_settings(["refinement.sample_stride=3", "refinement.accept_frac=0.2"])
+    assert refine == {"refinement.sample_stride": 3, "refinement.accept_frac": 0.2}
+    both = tracker_config(verification={**refine, "sample_stride": 2})
+    assert both.refinement.sample_stride == 3 and both.refinement.accept_frac == 0.2
+    assert both.verification.sample_stride == 2 and both.refinement.enabled
+    for bad, says in (
+        ({"refinement.sample_stride": 0}, "refinement"),
+        ({"sample_stride": 0}, "verification config"),
+    ):
+        with pytest.raises(PosefuseError, match=says):
+            tracker_config(verification=bad)
     for bad in (
         {"edges.max_points": 0},
         {"edges.roi_size": 8},

@@ -609,6 +609,48 @@ def test_the_occlusion_table_answers_as_its_viewpoint_camera_and_near_any_camera
         assert differ <= tolerance * shown, (differ, shown)
 
 
+def test_a_subset_of_the_samples_shows_as_they_do_in_the_whole_and_shares_its_table(robi_catalog):
+    """``ModelEdges.subset(k)``: every k-th sample, showing at any pose exactly where it shows in
+    the whole model, with a spacing k times wider; the occlusion table is shared both ways, so
+    the subset casts no ray the whole has cast, and the whole none the subset has."""
+    model = _model(robi_catalog, "eye_bolt")
+    R, t = _random_poses(model, 10, seed=12)
+    alone = _edges(model)
+    pose_edges(alone, R, t)
+    for first_whole in (True, False):
+        edges = _edges(model)
+        part = edges.subset(3)
+        assert part is edges.subset(3) and edges.subset(1) is edges
+        assert len(part.points) == len(range(0, len(edges.points), 3))
+        assert part.spacing == pytest.approx(3 * edges.spacing)
+        order = (edges, part) if first_whole else (part, edges)
+        _, _, active_a, contour_a = pose_edges(order[0], R, t)
+        cast = edges.occlusion.rays_cast
+        _, _, active_b, contour_b = pose_edges(order[1], R, t)
+        whole_active, whole_contour = (
+            (active_a, contour_a) if first_whole else (active_b, contour_b)
+        )
+        part_active, part_contour = (active_b, contour_b) if first_whole else (active_a, contour_a)
+        assert np.array_equal(part_active, whole_active[:, ::3])
+        assert np.array_equal(part_contour, whole_contour[:, ::3])
+        assert (whole_active & ~_facing_any(edges, R, t)).sum() == 0
+        if first_whole:  # everything the subset asks, the whole has cast already
+            assert edges.occlusion.rays_cast == cast
+        else:  # the whole casts only the samples the subset has not: each pair once in all
+            assert 0 < cast < edges.occlusion.rays_cast == alone.occlusion.rays_cast
+        assert whole_active.sum() > part_active.sum() > 0
+    with pytest.raises(ValueError, match="stride"):
+        edges.subset(0)
+
+
+def _facing_any(edges, R, t):
+    """(N, P) bool: a face of the sample turns towards the camera (the most that may show)."""
+    c_obj = -np.einsum("nji,nj->ni", R, t)
+    normals = edges.normals  # (P, 2, 3)
+    to_face = np.einsum("pki,pi->pk", normals, edges.points)
+    return np.any(np.einsum("ni,pki->npk", c_obj, normals) > to_face[None], axis=2)
+
+
 def test_the_viewpoint_directions_cover_the_sphere_evenly():
     """4096 Fibonacci directions: unit, and every direction within 2.5 degrees of one of them
     (the table's answer comes from at most that far)."""
