@@ -178,6 +178,8 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
 
     optional = {
         f.name for f in dataclasses.fields(VerificationConfig) if f.type == "float | None"
+    } | {
+        f"refinement.{f.name}" for f in dataclasses.fields(RefineConfig) if f.type == "float | None"
     }  # "none" switches it off
     numeric = _numeric_fields(VerificationConfig)
     numeric.update({f"edges.{k}": t for k, t in _numeric_fields(EdgeConfig).items()})

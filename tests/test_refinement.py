@@ -185,7 +185,10 @@ def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_ca
     assert 1 <= ok.iterations <= RefineConfig().iterations
     # the same run may move at most 1 degree, or 0.001 d: refused, the start and the priors
     # come back, and the cost reported is the start's
-    for config in (RefineConfig(accept_deg=1.0), RefineConfig(accept_frac=0.001)):
+    for config in (
+        RefineConfig(accept_deg=1.0),
+        RefineConfig(accept_frac=0.001, accept_frac_max=None),
+    ):
         *_, out = _tube_refinement(robi_catalog, config)
         assert not out.accepted
         np.testing.assert_array_equal(out.R_world_obj, R0)
@@ -202,12 +205,38 @@ def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_ca
     assert np.trace(ok.cov[:3, :3]) < 3 * (0.1 * model.diameter) ** 2
 
 
+def test_a_move_past_accept_frac_is_accepted_only_where_the_translation_prior_allows_it(
+    robi_catalog,
+):
+    """Beyond accept_frac, up to accept_frac_max, a translation is accepted when its move is
+    likely under the prior (squared Mahalanobis distance at most accept_chi2): the tube comes
+    back about 0.02 d, well inside its prior of 0.1 d, so it is accepted with the bound at
+    0.001 d; the same move refused where the gate is shut, or the farther bound is off."""
+    model, (_, t_true), (_, t0), ok = _tube_refinement(robi_catalog, RefineConfig())
+    moved = ok.t_world_obj - t0
+    assert 0.001 * model.diameter < np.linalg.norm(moved) < 0.3 * model.diameter
+    chi2 = float(moved @ moved) / (0.1 * model.diameter) ** 2  # the prior is isotropic here
+    for config, accepted in (
+        (RefineConfig(accept_frac=0.001, accept_frac_max=0.3), True),
+        (RefineConfig(accept_frac=0.001, accept_frac_max=0.3, accept_chi2=0.5 * chi2), False),
+        (RefineConfig(accept_frac=0.001, accept_frac_max=None), False),
+        (RefineConfig(accept_frac=0.001, accept_frac_max=0.001), False),
+    ):
+        *_, out = _tube_refinement(robi_catalog, config)
+        assert out.accepted is accepted, config
+        if accepted:
+            np.testing.assert_allclose(out.t_world_obj, ok.t_world_obj, atol=1e-9)
+            assert np.linalg.norm(out.t_world_obj - t_true) < np.linalg.norm(t0 - t_true)
+    with pytest.raises(ValueError, match="refinement config"):
+        RefineConfig(accept_frac=0.2, accept_frac_max=0.1)
+
+
 def test_a_refinement_past_what_would_be_accepted_stops_there_with_the_same_answer(
     robi_catalog,
 ):
     """Once the translation has moved farther than accept_frac, the refinement stops: here,
     as running on, it ends refused (the start and the priors come back), in fewer steps."""
-    strict = RefineConfig(accept_frac=0.001)
+    strict = RefineConfig(accept_frac=0.001, accept_frac_max=None)
     *_, (R0, t0), stopped = _tube_refinement(robi_catalog, strict)
     *_, ran_on = _tube_refinement(
         robi_catalog, dataclasses.replace(strict, stop_when_refused=False)

@@ -180,6 +180,13 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     both = tracker_config(verification={**refine, "sample_stride": 2})
     assert both.refinement.sample_stride == 3 and both.refinement.accept_frac == 0.2
     assert both.verification.sample_stride == 2 and both.refinement.enabled
+    assert verification_settings(["refinement.accept_frac_max=none"]) == {
+        "refinement.accept_frac_max": None
+    }
+    assert (
+        tracker_config(verification={"refinement.accept_frac_max": None}).refinement.accept_frac_max
+        is None
+    )
     for bad, says in (
         ({"refinement.sample_stride": 0}, "refinement"),
         ({"sample_stride": 0}, "verification config"),
