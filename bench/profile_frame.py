@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 
 import numpy as np
 
@@ -51,6 +51,8 @@ class StageTimer:
     def __init__(self):
         self.seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
+        self.accepted = 0  # refinements accepted (the others kept the verified pose)
+        self.refused: Counter = Counter()  # the others, by Refinement.refused
         self._depth = 0
 
     def wrap(self, fn, stage: str):
@@ -106,6 +108,16 @@ def instrumented(timer: StageTimer):
     try:
         for owner, name, stage in patches:
             setattr(owner, name, timer.wrap(getattr(owner, name), stage))
+        timed_refine = tracker.refine_pose
+
+        def refine_counted(*args, **kwargs):
+            out = timed_refine(*args, **kwargs)
+            timer.accepted += bool(out.accepted)
+            if not out.accepted:
+                timer.refused[out.refused] += 1
+            return out
+
+        tracker.refine_pose = refine_counted
         yield
     finally:
         for owner, name, fn in saved:
@@ -148,6 +160,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     totals, per_stage, calls = [], defaultdict(list), defaultdict(int)
+    accepted, refused = 0, Counter()
     with zenoh.open(conf) as session:
         network.detect(decode(frames[0][0][1]).image)  # warm-up
         for _ in range(repeat):
@@ -187,6 +200,8 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
                         per_stage[s].append(timer.seconds.get(s, 0.0))
                     for s, n in timer.calls.items():
                         calls[s] += n
+                    accepted += timer.accepted
+                    refused += timer.refused
     return {
         "frames": len(totals),
         "objects_per_view": float(np.mean(n_objects)),
@@ -194,6 +209,8 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
         "total_p50_ms": 1000 * float(np.median(totals)),
         "total_p95_ms": 1000 * float(np.percentile(totals, 95)),
         "calls": {s: calls[s] for s in COUNTED},
+        "refinements_accepted": accepted,
+        "refinements_refused": dict(refused),
     }
 
 
@@ -228,8 +245,11 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"over {r['frames']} frames: {n['edge maps']} views kept (edge maps), "
         f"{n['settled checks']} settled checks, {n['verification']} verifications, "
-        f"{n['refinement']} refinements"
+        f"{n['refinement']} refinements ({r['refinements_accepted']} accepted)"
     )
+    refused = r["refinements_refused"]
+    if refused:
+        print("refused for: " + ", ".join(f"{k} {v}" for k, v in sorted(refused.items())))
     return 0
 
 

@@ -76,7 +76,9 @@ class RefineConfig:
 class Refinement:
     """R_world_obj: (3, 3); t_world_obj: (3,) metres; cov: (6, 6) over (t, rotation) as in the
     module docstring; cost_start / cost: the objective before and after; accepted: False when
-    the result was refused (then R, t are the start and cov the priors')."""
+    the result was refused (then R, t are the start and cov the priors'); refused: why, the
+    first of "cost" (not lowered), "rotation" (turned past accept_deg) and "translation" (moved
+    past what the bounds allow), "" when accepted."""
 
     R_world_obj: np.ndarray
     t_world_obj: np.ndarray
@@ -85,6 +87,7 @@ class Refinement:
     cost: float
     iterations: int
     accepted: bool
+    refused: str = ""
 
 
 def _robust(d: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -312,13 +315,20 @@ def refine_pose(
     U, _, Vt = np.linalg.svd(R)
     R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
     moved_deg = float(np.rad2deg(rotation_angle(R @ R_start.T)))
-    accepted = (
-        cost < cost_start and moved_deg <= config.accept_deg and translation_allowed(t - t_start)
+    refused = (
+        "cost"
+        if not cost < cost_start
+        else "rotation"
+        if moved_deg > config.accept_deg
+        else ""
+        if translation_allowed(t - t_start)
+        else "translation"
     )
+    accepted = not refused
     cov = np.linalg.inv(0.5 * (H + H.T))
     if not accepted:
         R, t, cost = R_start.copy(), np.asarray(t_start, float).copy(), cost_start
         cov = np.zeros((6, 6))
         cov[:3, :3] = cov_t_prior
         cov[3:, 3:] = cov_R_prior
-    return Refinement(R, t, 0.5 * (cov + cov.T), cost_start, cost, it, accepted)
+    return Refinement(R, t, 0.5 * (cov + cov.T), cost_start, cost, it, accepted, refused)

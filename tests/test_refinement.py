@@ -185,12 +185,13 @@ def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_ca
     assert 1 <= ok.iterations <= RefineConfig().iterations
     # the same run may move at most 1 degree, or 0.001 d: refused, the start and the priors
     # come back, and the cost reported is the start's
-    for config in (
-        RefineConfig(accept_deg=1.0),
-        RefineConfig(accept_frac=0.001, accept_frac_max=None),
+    assert ok.refused == ""
+    for config, why in (
+        (RefineConfig(accept_deg=1.0), "rotation"),
+        (RefineConfig(accept_frac=0.001, accept_frac_max=None), "translation"),
     ):
         *_, out = _tube_refinement(robi_catalog, config)
-        assert not out.accepted
+        assert not out.accepted and out.refused == why
         np.testing.assert_array_equal(out.R_world_obj, R0)
         np.testing.assert_array_equal(out.t_world_obj, t0)
         assert out.cost == out.cost_start == ok.cost_start
@@ -224,6 +225,7 @@ def test_a_move_past_accept_frac_is_accepted_only_where_the_translation_prior_al
     ):
         *_, out = _tube_refinement(robi_catalog, config)
         assert out.accepted is accepted, config
+        assert out.refused == ("" if accepted else "translation")
         if accepted:
             np.testing.assert_allclose(out.t_world_obj, ok.t_world_obj, atol=1e-9)
             assert np.linalg.norm(out.t_world_obj - t_true) < np.linalg.norm(t0 - t_true)
