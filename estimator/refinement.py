@@ -17,8 +17,10 @@ order x, y, z, rot_x, rot_y, rot_z the daemon publishes. Each view counts at mos
 independent measurements).
 
 The refinement is local: it starts from one hypothesis and keeps to its basin, so symmetric
-equivalents stay apart as in the mixture. A result that moved farther than ``accept_deg`` /
-``accept_frac`` of the diameter from its start, or did not lower the cost, is not accepted.
+equivalents stay apart as in the mixture. A result that did not lower the cost, turned farther
+than ``accept_deg``, or moved farther than ``accept_frac`` of the diameter from its start, is not
+accepted, unless the move is within ``accept_frac_max`` and likely under the translation prior
+(``accept_chi2``): a track unsure of its depth may move farther than one seen from many views.
 """
 
 from __future__ import annotations
