@@ -202,7 +202,14 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
                         calls[s] += n
                     accepted += timer.accepted
                     refused += timer.refused
+    # the self-occlusion rays the tables cast over the whole run (viewpoints asked the first time)
+    rays = sum(
+        edges.occlusion.rays_cast
+        for edges in estimator._edges.values()
+        if edges.occlusion is not None
+    )
     return {
+        "rays_cast": rays,
         "frames": len(totals),
         "objects_per_view": float(np.mean(n_objects)),
         "stages_ms": {s: 1000 * float(np.mean(v)) for s, v in per_stage.items()},
@@ -247,6 +254,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{n['settled checks']} settled checks, {n['verification']} verifications, "
         f"{n['refinement']} refinements ({r['refinements_accepted']} accepted)"
     )
+    print(f"self-occlusion rays cast by the viewpoint tables: {r['rays_cast']}")
     refused = r["refinements_refused"]
     if refused:
         print("refused for: " + ", ".join(f"{k} {v}" for k, v in sorted(refused.items())))
