@@ -32,7 +32,7 @@ import numpy as np
 from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
 from posefuse.estimator.geometry import project_jacobian, rotation_angle, so3_exp, so3_log
 
-__all__ = ["RefineConfig", "Refinement", "refine_pose"]
+__all__ = ["RefineConfig", "Refinement", "accepts_translation", "refine_pose"]
 
 
 @dataclass(frozen=True)
@@ -200,6 +200,23 @@ def _linearize(
     return cost, H, g, sets
 
 
+def accepts_translation(
+    moved: np.ndarray, info_t: np.ndarray, diameter: float, config: RefineConfig
+) -> bool:
+    """Whether a refinement whose translation moved by ``moved`` (3,) metres from its start is
+    accepted: within ``accept_frac`` of the diameter, or within ``accept_frac_max`` where the
+    translation prior, of information ``info_t`` (3, 3) 1/m^2, finds the move likely (squared
+    Mahalanobis distance at most ``accept_chi2``)."""
+    distance = float(np.linalg.norm(moved))
+    if distance <= config.accept_frac * diameter:
+        return True
+    if config.accept_frac_max is None:
+        return False
+    return distance <= config.accept_frac_max * diameter and (
+        float(moved @ info_t @ moved) <= config.accept_chi2
+    )
+
+
 def refine_pose(
     edges: ModelEdges,
     views: list[EdgeView],
@@ -270,16 +287,7 @@ def refine_pose(
             cost, H, g, sets = warm
 
     def translation_allowed(moved: np.ndarray) -> bool:
-        """Whether a translation moved by ``moved`` (3,) metres from the start may be accepted
-        (accept_frac, or up to accept_frac_max where the prior finds it likely)."""
-        distance = float(np.linalg.norm(moved))
-        if distance <= config.accept_frac * edges.diameter:
-            return True
-        if config.accept_frac_max is None:
-            return False
-        return distance <= config.accept_frac_max * edges.diameter and (
-            float(moved @ info_t @ moved) <= config.accept_chi2
-        )
+        return accepts_translation(moved, info_t, edges.diameter, config)
 
     step_tol_rad, step_tol_m = (
         np.deg2rad(config.step_tol_deg),

@@ -46,7 +46,12 @@ from posefuse.estimator.geometry import rotation_angle
 from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
 from posefuse.estimator.mixture import MixtureConfig, RotationMixture
 from posefuse.estimator.objects import Catalog
-from posefuse.estimator.refinement import RefineConfig, Refinement, refine_pose
+from posefuse.estimator.refinement import (
+    RefineConfig,
+    Refinement,
+    accepts_translation,
+    refine_pose,
+)
 from posefuse.estimator.rotation import RotationConfig, RotationMatcher
 from posefuse.estimator.splitting import SplitConfig, outlier_views
 from posefuse.estimator.templates import (
@@ -633,8 +638,9 @@ class MultiViewEstimator:
         (:mod:`estimator.verification`, :mod:`estimator.refinement`).
 
         Without new views (the mixture gained or lost a component), a winner whose basin holds
-        the last accepted refinement (within ``accept_deg``, and its translation within
-        ``accept_frac`` of the diameter of today's), at a translation that has moved less than
+        the last accepted refinement (within ``accept_deg``, and its translation a move from
+        today's that a refinement would accept, ``refinement.accepts_translation``), at a
+        translation that has moved less than
         ``settled_translation_frac`` of the diameter from that refinement's prior, keeps it: the
         kept views are the ones it was refined over or ones that agreed with it (``_settled``),
         so refining again from the same place would land where it did
@@ -668,8 +674,12 @@ class MultiViewEstimator:
             previous is not None
             and previous.accepted
             and rotation_angle(previous.R_world_obj @ R_start.T) <= np.deg2rad(rcfg.accept_deg)
-            and np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj)
-            <= rcfg.accept_frac * edges.diameter
+            and accepts_translation(
+                previous.t_world_obj - track.estimate.t_world_obj,
+                np.linalg.inv(track.estimate.cov),
+                edges.diameter,
+                rcfg,
+            )
         ):
             R_init, t_init = previous.R_world_obj, previous.t_world_obj
         if (

@@ -407,3 +407,18 @@ def test_a_sample_stride_below_one_is_refused():
 
     with pytest.raises(ValueError, match="verification config"):
         VerificationConfig(sample_stride=0)
+
+
+def test_accepts_translation_bounds_the_move_by_the_diameter_and_the_prior():
+    from posefuse.estimator.refinement import accepts_translation
+
+    d, config = 0.1, RefineConfig()  # accept_frac 0.1 d, up to 0.3 d where the prior allows
+    x = np.array([1.0, 0.0, 0.0])
+    loose = np.eye(3) / (0.2 * d) ** 2  # the prior's std 0.2 d
+    tight = np.eye(3) / (0.01 * d) ** 2
+    assert accepts_translation(0.09 * d * x, tight, d, config)  # within 0.1 d: always
+    assert accepts_translation(0.25 * d * x, loose, d, config)  # (1.25)^2 <= 11.34
+    assert not accepts_translation(0.25 * d * x, tight, d, config)
+    assert not accepts_translation(0.35 * d * x, loose, d, config)  # past 0.3 d: never
+    fixed = dataclasses.replace(config, accept_frac_max=None)
+    assert not accepts_translation(0.25 * d * x, loose, d, fixed)

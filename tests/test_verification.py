@@ -362,6 +362,7 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
     import dataclasses
 
     from posefuse.estimator.dataset import load_dataset
+    from posefuse.estimator.refinement import accepts_translation
     from posefuse.estimator.tracker import TrackerConfig
 
     dataset = load_dataset(small_dataset_root)
@@ -374,8 +375,12 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
         previous = track.refined
         estimator._verify(track, new_views=False)
         lead = track.verdict.R_world_obj[track.verdict.best]
-        near = np.linalg.norm(previous.t_world_obj - track.estimate.t_world_obj) <= (
-            estimator.config.refinement.accept_frac * dataset.catalog[track.obj_id].diameter
+        # near: a move from today's translation that a refinement would accept
+        near = accepts_translation(
+            previous.t_world_obj - track.estimate.t_world_obj,
+            np.linalg.inv(track.estimate.cov),
+            dataset.catalog[track.obj_id].diameter,
+            estimator.config.refinement,
         )
         holds = rotation_angle(previous.R_world_obj @ lead.T) <= accept and near
         assert (track.refined is previous) == holds
