@@ -8,10 +8,13 @@ that applies, in this order:
 
 1. ``correct``: an estimate found it (ADD-sym < 0.1 d, BOP's matching, as the reports count);
 2. ``not detected``: fewer than ``min_views`` of its detections so far (a track needs two);
-3. ``split``: its detections went to two or more tracks;
+3. ``split``: its detections went to two or more of the tracks alive at the checkpoint (a track
+   dropped since, such as one founded on a wrong pairing and later let go, holds nothing: its
+   detections count only towards rule 2);
 4. ``merged``: its track also holds another instance's detections, or the estimate of its
    track was matched to another instance;
-5. ``no pose``: its track has no reported pose (not confirmed, or no rotation measured yet);
+5. ``no pose``: its track has no reported pose (not confirmed, or no rotation measured yet), or
+   every track that took its detections has been dropped;
 6. ``translation off``: the track's translation alone, with the true rotation, fails ADD-sym;
 7. ``rotation flipped``: the rotation is off by at least 135 degrees from the closest symmetric
    equivalent of the truth (the part seen end over end, a symmetry-like flip);
@@ -85,7 +88,8 @@ def instance_fates(
     """The fate of each scored instance of ``view`` (a BopView) after ``n_views`` views.
 
     tracks: every track of the estimator (with or without a pose); members: object_id -> the
-    instance index of each detection the track took (-1 for false positives).
+    instance index of each detection the track took (-1 for false positives), for dropped
+    tracks too.
     """
     posed = [t for t in tracks if t.T_cam_obj is not None]
     correct: set[int] = set()
@@ -122,6 +126,7 @@ def instance_fates(
             view,
             catalog,
             held,
+            Counter({oid: n for oid, n in held.items() if oid in by_id}),
             by_id,
             members,
             correct,
@@ -134,15 +139,30 @@ def instance_fates(
 
 
 def _fate(
-    k, gt, view, catalog, held, by_id, members, correct, matched_elsewhere, min_views, threshold
+    k,
+    gt,
+    view,
+    catalog,
+    held,
+    held_alive,
+    by_id,
+    members,
+    correct,
+    matched_elsewhere,
+    min_views,
+    threshold,
 ) -> str:
+    """held: track -> how many of the instance's detections it took, dropped tracks included;
+    held_alive: the same over the tracks alive now."""
     if k in correct:
         return "correct"
     if sum(held.values()) < min_views:
         return "not detected"
-    if len(held) >= 2:
+    if len(held_alive) >= 2:
         return "split"
-    main = held.most_common(1)[0][0]
+    if not held_alive:
+        return "no pose"
+    main = held_alive.most_common(1)[0][0]
     if any(x >= 0 and x != k for x in members.get(main, [])):
         return "merged"
     track = by_id.get(main)
