@@ -126,7 +126,6 @@ def instance_fates(
             view,
             catalog,
             held,
-            Counter({oid: n for oid, n in held.items() if oid in by_id}),
             by_id,
             members,
             correct,
@@ -144,7 +143,6 @@ def _fate(
     view,
     catalog,
     held,
-    held_alive,
     by_id,
     members,
     correct,
@@ -153,11 +151,12 @@ def _fate(
     threshold,
 ) -> str:
     """held: track -> how many of the instance's detections it took, dropped tracks included;
-    held_alive: the same over the tracks alive now."""
+    by_id: the tracks alive now, by object_id."""
     if k in correct:
         return "correct"
     if sum(held.values()) < min_views:
         return "not detected"
+    held_alive = Counter({oid: n for oid, n in held.items() if oid in by_id})
     if len(held_alive) >= 2:
         return "split"
     if not held_alive:
