@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
-from posefuse.estimator.geometry import project_jacobian, rotation_angle, so3_exp, so3_log
+from posefuse.estimator.geometry import rotation_angle, so3_exp, so3_log
 
 __all__ = ["RefineConfig", "Refinement", "accepts_translation", "refine_pose"]
 
@@ -43,7 +43,13 @@ class RefineConfig:
     huber_px: float = 2.0
     points_per_view: float = 40.0  # at most this many samples' information per view
     rotation_floor_deg: float = 3.0  # the rotation prior's std is at least this
-    accept_deg: float = 15.0
+    # a turn farther than this from the start is refused, to keep the refinement in its basin.
+    # The tracker narrows it per part to half the part's smallest near-symmetric turn
+    # (verification.refinement_reach_deg): 90 degrees, half a flip, for the catalog's parts. A
+    # template match in a pile can be 15 to 30 degrees off in its own basin, and the bound of
+    # 15 degrees it had refused the refinements that brought it back (docs/verification.md, "A
+    # refinement may turn as far as its basin reaches")
+    accept_deg: float = 90.0
     accept_frac: float = 0.1  # of the diameter
     # a translation that moved farther than accept_frac, up to accept_frac_max, is accepted
     # where the translation prior finds the move likely: its squared Mahalanobis distance under
@@ -179,21 +185,25 @@ def _linearize(
     v_l, s_l = view[read[live]], sample[read[live]]
     bounds = np.searchsorted(v_l, np.arange(V + 1))
     a = edges.points[s_l] @ R.T  # (n, 3) R p: the sample turned, before the translation
-    pts_cam, e = np.empty_like(a), np.empty((len(live), 2))
+    # per view, the gradient pulled back through the RoI intrinsics (d distance / d (x/z, y/z)),
+    # then through the projection, d (x/z, y/z) / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    # (geometry.project_jacobian at K = I, written out), then to the world frame: d p_cam /
+    # d (dt, dphi) = R_cw [I, -hat(R p)], so g_w = R_cw^T grad_p gives the row [g_w, (R p) x g_w]
+    J = np.empty((len(live), 6))
     for v in np.flatnonzero(np.diff(bounds)):
         rows = slice(bounds[v], bounds[v + 1])
-        pts_cam[rows] = a[rows] @ stack.R_cw[v].T + t_cam[v]
-        # the gradient pulled back through the view's RoI intrinsics: d distance / d (x/z, y/z)
-        e[rows] = grad[live[rows]] @ stack.K[v, :2, :2]
-    # then through geometry.project_jacobian (at K = I)
-    grad_p = np.einsum("ni,nij->nj", e, project_jacobian(pts_cam, np.eye(3)))  # (n, 3)
-    # d p_cam / d (dt, dphi) = R_cw [I, -hat(R p)]: the world-frame gradient g_w = R_cw^T grad_p
-    # gives the row [g_w, (R p) x g_w]
-    g_w = np.empty_like(grad_p)
-    for v in np.flatnonzero(np.diff(bounds)):
-        rows = slice(bounds[v], bounds[v + 1])
-        g_w[rows] = grad_p[rows] @ stack.R_cw[v]
-    J = np.concatenate([g_w, np.cross(a, g_w)], axis=1)  # (n, 6)
+        p_cam = a[rows] @ stack.R_cw[v].T + t_cam[v]
+        e = grad[live[rows]] @ stack.K[v, :2, :2]
+        inv_z = 1.0 / p_cam[:, 2]
+        grad_p = np.empty_like(p_cam)
+        grad_p[:, 0] = e[:, 0] * inv_z
+        grad_p[:, 1] = e[:, 1] * inv_z
+        grad_p[:, 2] = -(e[:, 0] * p_cam[:, 0] + e[:, 1] * p_cam[:, 1]) * inv_z * inv_z
+        J[rows, :3] = grad_p @ stack.R_cw[v]
+    g_w = J[:, :3]
+    J[:, 3] = a[:, 1] * g_w[:, 2] - a[:, 2] * g_w[:, 1]
+    J[:, 4] = a[:, 2] * g_w[:, 0] - a[:, 0] * g_w[:, 2]
+    J[:, 5] = a[:, 0] * g_w[:, 1] - a[:, 1] * g_w[:, 0]
     wl = w[live] * scale[live]
     H = (J * wl[:, None]).T @ J
     g = J.T @ (wl * d[live])

@@ -19,7 +19,7 @@ sequence of updates gives the same estimates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -77,6 +77,7 @@ from posefuse.estimator.verification import (
     hypotheses,
     is_new_viewpoint,
     near_symmetries,
+    refinement_reach_deg,
     verify,
 )
 
@@ -268,6 +269,8 @@ class MultiViewEstimator:
         self._held: dict[int, list[HeldDetection]] = {}  # per class, waiting for a partner
         self._edges: dict[int, ModelEdges] = {}  # per class, for verification
         self._variants: dict[int, np.ndarray] = {}  # per class, near-symmetric turns
+        # per class, the refinement's settings with its turn bounded by the class's basin
+        self._refine_config: dict[int, RefineConfig] = {}
         self._view_serial = 0
         self.last_report = UpdateReport((), (), (), ())
         self.last_stamp_ns: int | None = None
@@ -620,6 +623,12 @@ class MultiViewEstimator:
             edges, new, refined.R_world_obj, refined.t_world_obj, R_h, vcfg.settled_margin, vcfg
         )
 
+    def refinement_config(self, obj_id: int) -> RefineConfig:
+        """The refinement's settings for a class: the tracker's, its turn bounded by the part's
+        basin (:func:`estimator.verification.refinement_reach_deg`)."""
+        self._model_edges(obj_id)
+        return self._refine_config[obj_id]
+
     def _model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:
         """The class's edge samples and near-symmetric turns (computed on first use)."""
         if obj_id not in self._edges:
@@ -631,6 +640,9 @@ class MultiViewEstimator:
             self._variants[obj_id] = near_symmetries(
                 model.points, model.diameter, sym, axes, cfg.near_frac, cfg.max_variants
             )
+            reach = refinement_reach_deg(self._variants[obj_id], sym, axes)
+            rcfg = self.config.refinement
+            self._refine_config[obj_id] = replace(rcfg, accept_deg=min(rcfg.accept_deg, reach))
         return self._edges[obj_id], self._variants[obj_id]
 
     def _verify(self, track: Track, new_views: bool = True) -> None:
@@ -662,7 +674,7 @@ class MultiViewEstimator:
             track.scores,
         )
         track.verdict = verdict
-        rcfg = self.config.refinement
+        rcfg = self.refinement_config(track.obj_id)
         previous, track.refined = track.refined, None
         if verdict is None or not rcfg.enabled:
             return

@@ -43,6 +43,7 @@ __all__ = [
     "hypotheses",
     "is_new_viewpoint",
     "near_symmetries",
+    "refinement_reach_deg",
     "score_hypotheses",
     "verify",
 ]
@@ -251,6 +252,25 @@ def near_symmetries(
         if len(kept) >= max_variants:
             break
     return np.array(kept).reshape(-1, 3, 3)
+
+
+def refinement_reach_deg(
+    variants: np.ndarray, symmetries: np.ndarray, continuous_axes: np.ndarray
+) -> float:
+    """How far a refinement may turn from its start and stay in its basin, degrees: half the
+    smallest near-symmetric turn of the part (each taken to its symmetric equivalent nearest the
+    identity), so that it never reaches halfway to a variant the verification tells apart; 90
+    (half of a flip) where the part has none.
+
+    Args:
+        variants: (M, 3, 3) :func:`near_symmetries`; symmetries: (S, 3, 3) object-frame symmetry
+        rotations with the identity first; continuous_axes: (A, 3) unit axes.
+    """
+    if len(variants) == 0:
+        return 90.0
+    turns = np.asarray(variants, float)
+    _, angle = closest_equivalents(turns, np.eye(3), symmetries, continuous_axes)
+    return float(min(90.0, 0.5 * np.rad2deg(angle.min())))
 
 
 def score_hypotheses(

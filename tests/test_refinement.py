@@ -74,6 +74,26 @@ def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalo
         assert np.trace(out.cov[3:, 3:]) < 3 * np.deg2rad(20.0) ** 2
 
 
+def test_the_default_bounds_accept_a_start_twenty_degrees_off_and_bring_it_back(robi_catalog):
+    """A template match in a pile can be 20 degrees off in its true basin: with the default
+    bounds (``accept_deg``) the refinement that brings it back within 2 degrees is accepted, while
+    a bound of 15 degrees, the default before, refuses the same result."""
+    model, T_world_obj, views, edges = _tube_once(robi_catalog)
+    R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+    axis = np.array([1.0, 2.0, -1.0]) / np.sqrt(6.0)
+    R0 = so3_exp(np.deg2rad(20.0) * axis) @ R_true
+    config = RefineConfig(iterations=20)
+    out = _refine_from(model, edges, views, R0, t_true, config)
+    assert out.accepted and out.refused == ""
+    _, angle = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
+    assert np.rad2deg(angle) < 2.0
+    narrow = _refine_from(
+        model, edges, views, R0, t_true, dataclasses.replace(config, accept_deg=15.0)
+    )
+    assert not narrow.accepted and narrow.refused == "rotation"
+
+
 def _smooth_views(rng, n_views: int, bins: int, with_mask: list[bool]):
     """EdgeViews of smooth synthetic distance fields (every orientation bin alike, so that a
     sample's bin does not matter), cameras 0.4-0.6 m from the origin looking at it."""

@@ -27,6 +27,7 @@ from posefuse.estimator.verification import (
     cached_scores,
     hypotheses,
     near_symmetries,
+    refinement_reach_deg,
     score_hypotheses,
     verify,
 )
@@ -180,6 +181,34 @@ def test_near_symmetries_are_turns_the_catalog_does_not_call_symmetries(robi_cat
     assert any(np.rad2deg(rotation_angle(v)) > 179 for v in V)
 
 
+def test_a_refinement_reaches_halfway_to_the_nearest_variant_and_no_farther_than_a_quarter_turn(
+    robi_catalog,
+):
+    """The refinement's turn is bounded by the part (refinement_reach_deg): half its smallest
+    near-symmetric turn, taken modulo its symmetries, and 90 degrees (half a flip) at most."""
+    none = np.zeros((0, 3, 3))
+    identity, no_axes = np.eye(3)[None], np.zeros((0, 3))
+    assert refinement_reach_deg(none, identity, no_axes) == 90.0
+    flip = so3_exp(np.array([np.pi, 0.0, 0.0]))
+    assert refinement_reach_deg(flip[None], identity, no_axes) == pytest.approx(90.0)
+    fifth = so3_exp(np.array([0.0, 0.0, 2 * np.pi / 5]))
+    assert refinement_reach_deg(np.stack([flip, fifth]), identity, no_axes) == pytest.approx(36.0)
+    # a turn of 4/5 about z is a fifth the other way: its nearest equivalent is what counts
+    four_fifths = so3_exp(np.array([0.0, 0.0, 8 * np.pi / 5]))
+    assert refinement_reach_deg(four_fifths[None], identity, no_axes) == pytest.approx(36.0)
+    # under a 2-fold symmetry about z, a half turn about z less 30 degrees is 30 degrees away
+    half_z = so3_exp(np.array([0.0, 0.0, np.pi]))
+    near_half = so3_exp(np.array([0.0, 0.0, np.pi - np.pi / 6]))
+    reach = refinement_reach_deg(near_half[None], np.stack([np.eye(3), half_z]), no_axes)
+    assert reach == pytest.approx(15.0)
+    # the catalog's parts: every near-symmetric turn is a flip
+    for model in robi_catalog.values():
+        sym = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+        axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+        V = near_symmetries(model.points, model.diameter, sym, axes)
+        assert refinement_reach_deg(V, sym, axes) == pytest.approx(90.0), model.name
+
+
 def test_the_edges_that_show_outline_a_box_seen_face_on():
     box = trimesh.creation.box((0.04, 0.02, 0.01))
     edges = model_edges(box, float(np.linalg.norm([0.04, 0.02, 0.01])), CONFIG.edges)
@@ -249,7 +278,10 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
             assert np.allclose(estimate.T_world_obj[:3, :3], refined.R_world_obj, atol=1e-9)
             assert np.allclose(estimate.T_world_obj[:3, 3], refined.t_world_obj, atol=1e-12)
             assert np.allclose(estimate.cov, refined.cov)
-            assert rotation_angle(refined.R_world_obj @ lead.T) <= np.deg2rad(15.0) + 1e-9
+            # within the part's reach of the verified lead (a flip away is twice as far)
+            reach = estimator.refinement_config(track.obj_id).accept_deg
+            assert reach <= 90.0
+            assert rotation_angle(refined.R_world_obj @ lead.T) <= np.deg2rad(reach) + 1e-9
         else:
             assert np.allclose(estimate.T_world_obj[:3, :3], lead, atol=1e-9)
         assert np.isclose(sum(h.weight for h in estimate.hypotheses), 1.0)
