@@ -630,7 +630,8 @@ class MultiViewEstimator:
         return self._refine_config[obj_id]
 
     def _model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:
-        """The class's edge samples and near-symmetric turns (computed on first use)."""
+        """The class's edge samples and near-symmetric turns, and with them the refinement's
+        settings for the class (:meth:`refinement_config`); computed on first use."""
         if obj_id not in self._edges:
             model = self.catalog[obj_id]
             cfg = self.config.verification
