@@ -324,9 +324,12 @@ def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> M
     pos = (np.arange(n) + 0.5) * (cum[-1] / n)
     edge = np.minimum(np.searchsorted(cum, pos), len(length) - 1)
     frac = np.clip((pos - (cum[edge] - length[edge])) / np.maximum(length[edge], 1e-12), 0, 1)
-    points = a[edge] + frac[:, None] * (b - a)[edge]
-    directions = (b - a)[edge] / np.maximum(length[edge], 1e-12)[:, None]
-    normals = mesh.face_normals[adjacency[edge]]  # (P, 2, 3)
+    # plain arrays, not trimesh's tracked ones: every operation on those pays for a hash check
+    points = np.asarray(a[edge] + frac[:, None] * (b - a)[edge]).view(np.ndarray)
+    directions = np.asarray((b - a)[edge] / np.maximum(length[edge], 1e-12)[:, None]).view(
+        np.ndarray
+    )
+    normals = np.asarray(mesh.face_normals[adjacency[edge]]).view(np.ndarray)  # (P, 2, 3)
     crease = angles[edge] > np.deg2rad(config.crease_deg)
     occlusion = None
     if config.occlusion_directions:
@@ -608,7 +611,8 @@ def sample_maps(
     bottom = v10 + fx * (v11 - v10)
     scale = truncate / 255.0
     value = np.where(inside, (top + fy * (bottom - top)) * scale, truncate)
-    du = ((1 - fy) * (v01 - v00) + fy * (v11 - v10)) * scale
-    dv = (bottom - top) * scale
-    grad = np.where(inside[..., None], np.stack([du, dv], axis=-1), 0.0)
+    grad = np.empty(u.shape + (2,))
+    grad[..., 0] = ((1 - fy) * (v01 - v00) + fy * (v11 - v10)) * scale
+    grad[..., 1] = (bottom - top) * scale
+    grad[~inside] = 0.0
     return value, grad

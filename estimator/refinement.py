@@ -130,6 +130,133 @@ class _ViewStack:
         return cls(T[:, :3, :3], T[:, :3, 3], np.array([v.K_roi for v in views]), maps, has_mask)
 
 
+@dataclass(frozen=True, eq=False)
+class _Reads:
+    """The maps read at one pose for one or more sample sets, every sample once.
+
+    R: (3, 3) R_world_obj; t_cam: (V, 3) the pose's translation in each camera; view, sample:
+    (n,) of each read; mask: (n,) bool, a read of the mask-boundary map (else of the directional
+    chamfer); d: (n,) pixels; grad: (n, 2) d d / d (u, v). The chamfer reads come first, in
+    (view, sample) order, then the mask reads in the same order: a set's reads, taken out in
+    order, are those reading that set alone would make.
+    """
+
+    R: np.ndarray
+    t_cam: np.ndarray
+    view: np.ndarray
+    sample: np.ndarray
+    mask: np.ndarray
+    d: np.ndarray
+    grad: np.ndarray
+
+
+def _read(
+    edges: ModelEdges,
+    stack: _ViewStack,
+    R: np.ndarray,
+    t: np.ndarray,
+    shown: np.ndarray,
+    on_contour: np.ndarray,
+    truncate: float,
+    bins: int,
+    mask_weight: float,
+) -> _Reads:
+    """Read at (R, t) the directional chamfer of the ``shown`` samples (V, P) bool and the mask
+    boundary's distance of those ``on_contour`` (V, P) bool, all views in one call."""
+    V = len(stack.R_cw)
+    R_cam = stack.R_cw @ R  # (V, 3, 3)
+    t_cam = stack.R_cw @ t + stack.t_cw  # (V, 3)
+    view, sample, uv, angle = project_shown(edges, shown, R_cam, t_cam, stack.K)
+    b = np.floor(angle / (np.pi / bins) + 0.5).astype(np.intp) % bins
+    if mask_weight > 0:
+        masked = np.flatnonzero(on_contour[view, sample] & stack.has_mask[view])
+    else:
+        masked = np.zeros(0, np.intp)
+    read = np.concatenate([np.arange(len(view)), masked]).astype(np.intp)
+    channel = np.concatenate([view * bins + b, V * bins + view[masked]])
+    d, grad = sample_maps(stack.maps, channel, uv[read], truncate)
+    is_mask = np.zeros(len(read), bool)
+    is_mask[len(view) :] = True
+    return _Reads(R, t_cam, view[read], sample[read], is_mask, d, grad)
+
+
+def _data_term(
+    edges: ModelEdges,
+    stack: _ViewStack,
+    reads: _Reads,
+    sets: tuple[np.ndarray, np.ndarray],
+    truncate: float,
+    crease_weight: float,
+    mask_weight: float,
+    config: RefineConfig,
+    want_jacobian: bool = True,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """The data term's cost, information H (6, 6) and gradient g (6,) of the samples ``sets``
+    (contour, crease), each (V, P) bool, from ``reads`` that hold them (:func:`_read`)."""
+    V = len(stack.R_cw)
+    on_contour, crease = sets
+    c = on_contour[reads.view, reads.sample]
+    use = np.flatnonzero(np.where(reads.mask, c, c | crease[reads.view, reads.sample]))
+    view = reads.view[use]
+    term = np.where(reads.mask[use], 2, np.where(c[use], 0, 1))
+    d, grad = reads.d[use], reads.grad[use]
+    group = view * 3 + term  # (view, term) of each read
+    n = np.bincount(group, minlength=3 * V)
+    term_weight = np.array([1.0, crease_weight, mask_weight])[term]
+    # each sample read stands for sample_stride of the full sampling, up to points_per_view
+    # samples' worth per view and term
+    scale = (
+        term_weight
+        * np.minimum(config.sample_stride, config.points_per_view / n[group])
+        / config.sigma_px**2
+    )
+    rho, w = _robust(np.minimum(d, truncate), config.huber_px)
+    cost = float(np.sum(scale * rho))
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    live = np.flatnonzero(d < truncate * 0.999)
+    if not want_jacobian or len(live) == 0:
+        return cost, H, g
+    # the live reads grouped by view (the order of the rows does not change H or g), so that
+    # each view's camera and intrinsics apply to its rows in one product
+    live = live[np.argsort(view[live], kind="stable")]
+    v_l, s_l = view[live], reads.sample[use[live]]
+    bounds = np.searchsorted(v_l, np.arange(V + 1))
+    a = edges.points[s_l] @ reads.R.T  # (n, 3) R p: the sample turned, before the translation
+    # per view, the gradient pulled back through the RoI intrinsics (d distance / d (x/z, y/z)),
+    # then through the projection, d (x/z, y/z) / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
+    # (geometry.project_jacobian at K = I, written out), then to the world frame: d p_cam /
+    # d (dt, dphi) = R_cw [I, -hat(R p)], so g_w = R_cw^T grad_p gives the row [g_w, (R p) x g_w]
+    J = np.empty((len(live), 6))
+    for v in np.flatnonzero(np.diff(bounds)):
+        rows = slice(bounds[v], bounds[v + 1])
+        p_cam = a[rows] @ stack.R_cw[v].T + reads.t_cam[v]
+        e = grad[live[rows]] @ stack.K[v, :2, :2]
+        inv_z = 1.0 / p_cam[:, 2]
+        grad_p = np.empty_like(p_cam)
+        grad_p[:, 0] = e[:, 0] * inv_z
+        grad_p[:, 1] = e[:, 1] * inv_z
+        grad_p[:, 2] = -(e[:, 0] * p_cam[:, 0] + e[:, 1] * p_cam[:, 1]) * inv_z * inv_z
+        J[rows, :3] = grad_p @ stack.R_cw[v]
+    g_w = J[:, :3]
+    J[:, 3] = a[:, 1] * g_w[:, 2] - a[:, 2] * g_w[:, 1]
+    J[:, 4] = a[:, 2] * g_w[:, 0] - a[:, 0] * g_w[:, 2]
+    J[:, 5] = a[:, 0] * g_w[:, 1] - a[:, 1] * g_w[:, 0]
+    wl = w[live] * scale[live]
+    H = (J * wl[:, None]).T @ J
+    g = J.T @ (wl * d[live])
+    return cost, H, g
+
+
+def _showing(
+    edges: ModelEdges, stack: _ViewStack, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The samples showing at (R, t) in every view: (contour, crease), each (V, P) bool."""
+    R_cam = stack.R_cw @ R
+    t_cam = stack.R_cw @ t + stack.t_cw
+    _, _, active, contour = pose_edges(edges, R_cam, t_cam)
+    return contour, active & ~contour
+
+
 def _linearize(
     edges: ModelEdges,
     stack: _ViewStack,
@@ -147,66 +274,12 @@ def _linearize(
     samples used: (contour, crease), each (V, P) bool. Given ``sets``, those samples are used
     instead of the ones showing at (R, t): within one step the objective then compares like
     with like. All views' samples are read in one call."""
-    V = len(stack.R_cw)
-    R_cam = stack.R_cw @ R  # (V, 3, 3)
-    t_cam = stack.R_cw @ t + stack.t_cw  # (V, 3)
     if sets is None:
-        _, _, active, contour = pose_edges(edges, R_cam, t_cam)
-        sets = (contour, active & ~contour)
-    on_contour, crease = sets
-    view, sample, uv, angle = project_shown(edges, on_contour | crease, R_cam, t_cam, stack.K)
-    b = np.floor(angle / (np.pi / bins) + 0.5).astype(np.intp) % bins
-    is_contour = on_contour[view, sample]
-    # reads: the contour's and the creases' directional chamfer, the contour's mask distance
-    masked = np.flatnonzero(is_contour & stack.has_mask[view]) if mask_weight > 0 else []
-    read = np.concatenate([np.arange(len(view)), masked]).astype(np.intp)
-    term = np.concatenate([np.where(is_contour, 0, 1), np.full(len(masked), 2)])
-    channel = np.concatenate([view * bins + b, V * bins + view[masked]])
-    d, grad = sample_maps(stack.maps, channel, uv[read], truncate)
-    group = view[read] * 3 + term  # (view, term) of each read
-    n = np.bincount(group, minlength=3 * V)
-    term_weight = np.array([1.0, crease_weight, mask_weight])[term]
-    # each sample read stands for sample_stride of the full sampling, up to points_per_view
-    # samples' worth per view and term
-    scale = (
-        term_weight
-        * np.minimum(config.sample_stride, config.points_per_view / n[group])
-        / config.sigma_px**2
+        sets = _showing(edges, stack, R, t)
+    reads = _read(edges, stack, R, t, sets[0] | sets[1], sets[0], truncate, bins, mask_weight)
+    cost, H, g = _data_term(
+        edges, stack, reads, sets, truncate, crease_weight, mask_weight, config, want_jacobian
     )
-    rho, w = _robust(np.minimum(d, truncate), config.huber_px)
-    cost = float(np.sum(scale * rho))
-    H, g = np.zeros((6, 6)), np.zeros(6)
-    live = np.flatnonzero(d < truncate * 0.999)
-    if not want_jacobian or len(live) == 0:
-        return cost, H, g, sets
-    # the live reads grouped by view (the order of the rows does not change H or g), so that
-    # each view's camera and intrinsics apply to its rows in one product
-    live = live[np.argsort(view[read[live]], kind="stable")]
-    v_l, s_l = view[read[live]], sample[read[live]]
-    bounds = np.searchsorted(v_l, np.arange(V + 1))
-    a = edges.points[s_l] @ R.T  # (n, 3) R p: the sample turned, before the translation
-    # per view, the gradient pulled back through the RoI intrinsics (d distance / d (x/z, y/z)),
-    # then through the projection, d (x/z, y/z) / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    # (geometry.project_jacobian at K = I, written out), then to the world frame: d p_cam /
-    # d (dt, dphi) = R_cw [I, -hat(R p)], so g_w = R_cw^T grad_p gives the row [g_w, (R p) x g_w]
-    J = np.empty((len(live), 6))
-    for v in np.flatnonzero(np.diff(bounds)):
-        rows = slice(bounds[v], bounds[v + 1])
-        p_cam = a[rows] @ stack.R_cw[v].T + t_cam[v]
-        e = grad[live[rows]] @ stack.K[v, :2, :2]
-        inv_z = 1.0 / p_cam[:, 2]
-        grad_p = np.empty_like(p_cam)
-        grad_p[:, 0] = e[:, 0] * inv_z
-        grad_p[:, 1] = e[:, 1] * inv_z
-        grad_p[:, 2] = -(e[:, 0] * p_cam[:, 0] + e[:, 1] * p_cam[:, 1]) * inv_z * inv_z
-        J[rows, :3] = grad_p @ stack.R_cw[v]
-    g_w = J[:, :3]
-    J[:, 3] = a[:, 1] * g_w[:, 2] - a[:, 2] * g_w[:, 1]
-    J[:, 4] = a[:, 2] * g_w[:, 0] - a[:, 0] * g_w[:, 2]
-    J[:, 5] = a[:, 0] * g_w[:, 1] - a[:, 1] * g_w[:, 0]
-    wl = w[live] * scale[live]
-    H = (J * wl[:, None]).T @ J
-    g = J.T @ (wl * d[live])
     return cost, H, g, sets
 
 
@@ -263,19 +336,23 @@ def refine_pose(
 
     stack = _ViewStack.of(views)
 
-    def objective(R, t, sets=None, want_jacobian=True):
-        cost, H, g, used = _linearize(
+    def objective(R, t, sets, reads=None, want_jacobian=True):
+        """The cost, information and gradient at (R, t) of the samples ``sets``, data and
+        priors, from ``reads`` that hold them (None: read them now)."""
+        if reads is None:
+            reads = _read(
+                edges, stack, R, t, sets[0] | sets[1], sets[0], truncate_px, bins, mask_weight
+            )
+        cost, H, g = _data_term(
             edges,
             stack,
-            R,
-            t,
+            reads,
+            sets,
             truncate_px,
-            bins,
             crease_weight,
             mask_weight,
             config,
             want_jacobian,
-            sets,
         )
         r_t = t - t_prior
         r_R = so3_log(R @ R_start.T)
@@ -284,17 +361,28 @@ def refine_pose(
         H[3:, 3:] += info_R
         g[:3] += info_t @ r_t
         g[3:] += info_R @ r_R
-        return cost, H, g, used
+        return cost, H, g
 
     R, t = R_start.copy(), np.asarray(t_start, float).copy()
-    cost, H, g, sets = objective(R, t)
-    cost_start = cost
-    if R_init is not None and t_init is not None:
-        # a warm start (the last result of the same hypothesis), taken where it costs less
-        warm = objective(np.asarray(R_init, float), np.asarray(t_init, float))
+    sets = _showing(edges, stack, R, t)
+    if R_init is None or t_init is None:
+        cost, H, g = objective(R, t, sets)
+        cost_start = cost
+    else:
+        # a warm start (the last result of the same hypothesis), taken where it costs less. It
+        # mostly does, so its Jacobian is taken at once and the start's only if the start wins
+        R_w, t_w = np.asarray(R_init, float), np.asarray(t_init, float)
+        sets_w = _showing(edges, stack, R_w, t_w)
+        warm = objective(R_w, t_w, sets_w)
+        reads = _read(
+            edges, stack, R, t, sets[0] | sets[1], sets[0], truncate_px, bins, mask_weight
+        )
+        cost_start, _, _ = objective(R, t, sets, reads, want_jacobian=False)
         if warm[0] < cost_start:
-            R, t = np.asarray(R_init, float), np.asarray(t_init, float)
-            cost, H, g, sets = warm
+            R, t, sets = R_w, t_w, sets_w
+            cost, H, g = warm
+        else:
+            cost, H, g = objective(R, t, sets, reads)
 
     def translation_allowed(moved: np.ndarray) -> bool:
         return accepts_translation(moved, info_t, edges.diameter, config)
@@ -311,12 +399,25 @@ def refine_pose(
         delta = -np.linalg.solve(A, g)
         small = np.linalg.norm(delta[3:]) < step_tol_rad and np.linalg.norm(delta[:3]) < step_tol_m
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]
-        # the step is judged on the samples it was computed from, then the set is renewed
-        cost_same, *_ = objective(R_new, t_new, sets, want_jacobian=False)
+        # the step is judged on the samples it was computed from, then the set is renewed:
+        # both sets are read in one pass, the step mostly holding
+        sets_new = _showing(edges, stack, R_new, t_new)
+        reads = _read(
+            edges,
+            stack,
+            R_new,
+            t_new,
+            sets[0] | sets[1] | sets_new[0] | sets_new[1],
+            sets[0] | sets_new[0],
+            truncate_px,
+            bins,
+            mask_weight,
+        )
+        cost_same, _, _ = objective(R_new, t_new, sets, reads, want_jacobian=False)
         if cost_same < cost:
             before = cost
-            R, t = R_new, t_new
-            cost, H, g, sets = objective(R, t)
+            R, t, sets = R_new, t_new, sets_new
+            cost, H, g = objective(R, t, sets, reads)
             lam = max(lam / 3, 1e-7)
             rejected = 0
             # converged: the step was below the tolerance, or lowered the cost by a fraction
