@@ -577,8 +577,12 @@ def edge_view(
 
 
 def sample_maps(
-    maps: np.ndarray, channel: np.ndarray | None, uv: np.ndarray, truncate: float
-) -> tuple[np.ndarray, np.ndarray]:
+    maps: np.ndarray,
+    channel: np.ndarray | None,
+    uv: np.ndarray,
+    truncate: float,
+    with_gradient: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Bilinear samples of uint8 distance maps, in pixels, and their gradients.
 
     Args:
@@ -586,7 +590,7 @@ def sample_maps(
         None for a single map. uv: (..., 2) pixel coordinates; outside the map reads
         ``truncate`` with a zero gradient.
     Returns:
-        value: (...) pixels; grad: (..., 2) d value / d (u, v).
+        value: (...) pixels; grad: (..., 2) d value / d (u, v), None without ``with_gradient``.
     """
     if maps.ndim == 2:
         maps = maps[None]
@@ -611,6 +615,8 @@ def sample_maps(
     bottom = v10 + fx * (v11 - v10)
     scale = truncate / 255.0
     value = np.where(inside, (top + fy * (bottom - top)) * scale, truncate)
+    if not with_gradient:
+        return value, None
     grad = np.empty(u.shape + (2,))
     grad[..., 0] = ((1 - fy) * (v01 - v00) + fy * (v11 - v10)) * scale
     grad[..., 1] = (bottom - top) * scale

@@ -307,7 +307,9 @@ def score_hypotheses(
     view_of = pose % V
     b = np.floor(angle / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
     dcdt = np.stack([v.dcdt for v in views])  # (V, bins, L, L): one read for all views
-    d, _ = sample_maps(dcdt.reshape(-1, *dcdt.shape[2:]), view_of * ec.bins + b, uv, ec.truncate_px)
+    d, _ = sample_maps(
+        dcdt.reshape(-1, *dcdt.shape[2:]), view_of * ec.bins + b, uv, ec.truncate_px, False
+    )
     N = H * V
 
     def mean_or_one(values: np.ndarray, use: np.ndarray) -> np.ndarray:
@@ -322,7 +324,7 @@ def score_hypotheses(
     with_mask = np.array([v.mask_dt is not None for v in views])
     if with_mask.any() and config.mask_weight > 0:
         masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
-        dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px)
+        dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px, False)
         cost += config.mask_weight * np.tile(with_mask, H) * mean_or_one(dm, on_contour)
     return cost.reshape(H, V)
 
