@@ -8,11 +8,13 @@ that applies, in this order:
 
 1. ``correct``: an estimate found it (ADD-sym < 0.1 d, BOP's matching, as the reports count);
 2. ``not detected``: fewer than ``min_views`` of its detections so far (a track needs two);
-3. ``split``: its detections went to two or more of the tracks alive at the checkpoint (a track
-   dropped since, such as one founded on a wrong pairing and later let go, holds nothing: its
-   detections count only towards rule 2);
-4. ``merged``: its track also holds another instance's detections, or the estimate of its
-   track was matched to another instance;
+3. ``split``: its detections went to two or more of the tracks alive at the checkpoint, none of
+   them holding most of them (a track dropped since, such as one founded on a wrong pairing and
+   later let go, holds nothing: its detections count only towards rule 2). Where one live track
+   holds most of them, that is the instance's track, and a stray detection or two elsewhere
+   (a wrong founding pair, a false association) is not what its pose is judged by;
+4. ``merged``: its track holds as many detections of another instance as of its own, or the
+   estimate of its track was matched to another instance;
 5. ``no pose``: its track has no reported pose (not confirmed, or no rotation measured yet), or
    every track that took its detections has been dropped;
 6. ``translation off``: the track's translation alone, with the true rotation, fails ADD-sym;
@@ -157,12 +159,13 @@ def _fate(
     if sum(held.values()) < min_views:
         return "not detected"
     held_alive = Counter({oid: n for oid, n in held.items() if oid in by_id})
-    if len(held_alive) >= 2:
-        return "split"
     if not held_alive:
         return "no pose"
-    main = held_alive.most_common(1)[0][0]
-    if any(x >= 0 and x != k for x in members.get(main, [])):
+    main, n_main = held_alive.most_common(1)[0]
+    if 2 * n_main <= sum(held_alive.values()):  # no live track holds most of them
+        return "split"
+    others = Counter(x for x in members.get(main, []) if x >= 0 and x != k)
+    if others and others.most_common(1)[0][1] >= n_main:
         return "merged"
     track = by_id.get(main)
     if track is None or track.T_cam_obj is None:
