@@ -18,8 +18,11 @@ difference. A point of the model's projected edges, with its projected direction
 cost there. The front end's mask gives a second map: the distance to the mask's boundary, which
 the model's occluding contour should follow.
 
+The mask also gives points inside it, which a pose's silhouette should cover
+(:func:`silhouette_misses`): where the part shows, its silhouette must be.
+
 Everything is stored per view in ``uint8`` (tenths of the truncation), ``bins * L * L`` bytes
-plus ``L * L`` for the mask: 83 kB a view at the defaults.
+plus ``L * L`` for the mask, and the mask's points in ``int16``: 83 kB a view at the defaults.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ __all__ = [
     "project_edges",
     "project_shown",
     "sample_maps",
+    "silhouette_misses",
 ]
 
 
@@ -65,6 +69,8 @@ class EdgeConfig:
     # to a shell of radii in this ratio, in (1, 4]; 0 casts the rays of every pose instead
     occlusion_directions: int = 4096
     occlusion_shell_ratio: float = 1.25
+    # points kept inside the front end's mask, for the silhouette's coverage of it (at most)
+    coverage_points: int = 64
 
     def __post_init__(self) -> None:
         if (
@@ -75,6 +81,7 @@ class EdgeConfig:
             or self.bins > 64
             or self.occlusion_directions < 0
             or not 1.0 < self.occlusion_shell_ratio <= 4.0
+            or self.coverage_points < 0
         ):
             raise ValueError(f"invalid edge config: {self}")
 
@@ -282,7 +289,8 @@ class EdgeView:
     T_cam_world: (4, 4); K_roi: (3, 3) intrinsics of the RoI (the image's, scaled and shifted);
     dcdt: (bins, L, L) uint8 directional chamfer distance, 255 = ``truncate_px``;
     mask_dt: (L, L) uint8 distance to the mask's boundary, same scale, or None without a mask;
-    stamp_ns: the view's capture time.
+    stamp_ns: the view's capture time; mask_points: (Q, 2) int16 RoI pixels (x, y) inside the
+    mask (a pixel in from its boundary), spread evenly over it, or None without a mask.
     """
 
     T_cam_world: np.ndarray
@@ -290,10 +298,15 @@ class EdgeView:
     dcdt: np.ndarray
     mask_dt: np.ndarray | None
     stamp_ns: int
+    mask_points: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
-        return self.dcdt.nbytes + (0 if self.mask_dt is None else self.mask_dt.nbytes)
+        return (
+            self.dcdt.nbytes
+            + (0 if self.mask_dt is None else self.mask_dt.nbytes)
+            + (0 if self.mask_points is None else self.mask_points.nbytes)
+        )
 
 
 def model_edges(mesh: trimesh.Trimesh, diameter: float, config: EdgeConfig) -> ModelEdges:
@@ -551,7 +564,7 @@ def edge_view(
             np.minimum(dt[k], dt[k - 1] + lam, out=dt[k])
         for k in reversed(range(config.bins)):
             np.minimum(dt[k], dt[(k + 1) % config.bins] + lam, out=dt[k])
-    mask_dt = None
+    mask_dt = mask_points = None
     if mask is not None:
         sub, A_sub = _covered(np.asarray(mask), A, L)
         m = cv2.warpAffine(
@@ -562,18 +575,65 @@ def edge_view(
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )
-        boundary = m & ~cv2.erode(m, np.ones((3, 3), np.uint8)).astype(bool)
+        inner = cv2.erode(m, np.ones((3, 3), np.uint8))
+        boundary = m & ~inner.astype(bool)
         src = np.where(boundary.astype(bool), 0, 255).astype(np.uint8)
         mask_dt = _to_u8(
             cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_5), config.truncate_px
         )
+        mask_points = _spread_points(inner, config.coverage_points)
     return EdgeView(
         np.asarray(T_cam_world, float).copy(),
         K_roi,
         _to_u8(dt, config.truncate_px),
         mask_dt,
         int(stamp_ns),
+        mask_points,
     )
+
+
+def _spread_points(region: np.ndarray, count: int) -> np.ndarray:
+    """(Q, 2) int16 (x, y) of at most ``count`` pixels of ``region`` (L, L) nonzero, evenly
+    spaced in raster order (every pixel when it has no more)."""
+    flat = np.flatnonzero(region)
+    if len(flat) > count:
+        flat = flat[np.round(np.linspace(0, len(flat) - 1, count)).astype(np.intp)]
+    L = region.shape[1]
+    return np.stack([flat % L, flat // L], axis=1).astype(np.int16)
+
+
+def silhouette_misses(
+    mesh: trimesh.Trimesh,
+    R_cam_obj: np.ndarray,
+    t_cam_obj: np.ndarray,
+    K: np.ndarray,
+    points: list[np.ndarray],
+) -> np.ndarray:
+    """The share of each pose's image points that its silhouette leaves uncovered: the ray
+    through the point misses the mesh. All poses' rays are cast in one call.
+
+    Args:
+        R_cam_obj: (N, 3, 3); t_cam_obj: (N, 3) metres; K: (N, 3, 3) intrinsics of the points'
+        pixels; points: N arrays (Q_n, 2) of pixel coordinates (Q_n may be 0).
+    Returns:
+        (N,) in [0, 1]; 0 for a pose without points.
+    """
+    counts = np.array([len(p) for p in points], np.intp)
+    out = np.zeros(len(points))
+    if counts.sum() == 0:
+        return out
+    pose = np.repeat(np.arange(len(points)), counts)
+    uv1 = np.concatenate([np.asarray(p, float).reshape(-1, 2) for p in points])
+    uv1 = np.concatenate([uv1, np.ones((len(uv1), 1))], axis=1)
+    # the ray through each pixel, camera frame, then turned into the object frame; it starts at
+    # the camera centre, c = -R^T t
+    rays_cam = np.einsum("nij,nj->ni", np.linalg.inv(K)[pose], uv1)
+    directions = np.einsum("nji,nj->ni", R_cam_obj[pose], rays_cam)
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    origins = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)[pose]
+    hit = np.asarray(mesh.ray.intersects_any(origins, directions), bool)
+    missed = np.bincount(pose, weights=~hit, minlength=len(points))
+    return np.where(counts > 0, missed / np.maximum(counts, 1), 0.0)
 
 
 def sample_maps(

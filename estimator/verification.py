@@ -30,6 +30,7 @@ from posefuse.estimator.edges import (
     pose_edges,
     project_shown,
     sample_maps,
+    silhouette_misses,
 )
 from posefuse.estimator.geometry import rotation_angle, so3_exp
 from posefuse.estimator.mixture import closest_equivalents
@@ -62,6 +63,10 @@ class VerificationConfig:
     max_components: int = 5  # the leading components are verified, with their variants
     crease_weight: float = 0.5  # weight of the creases' chamfer against the contour's
     mask_weight: float = 1.5  # weight of the mask-boundary chamfer against the contour's
+    # weight of the share of the mask's points that the hypothesis' silhouette leaves uncovered
+    # (the part shows there, so its silhouette must cover it; where the silhouette spills over
+    # the mask, another part may hide it, and nothing is said); 0: not scored
+    coverage_weight: float = 1.0  # chosen on the tuning sets (docs/verification.md)
     # a view that shows less edge than min_points samples at the finest spacing (d / 80: 0.15 d
     # of edge) says nothing (cost 1); ModelEdges.samples_for turns it into the model's samples
     min_points: int = 12
@@ -326,6 +331,9 @@ def score_hypotheses(
         masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
         dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px, False)
         cost += config.mask_weight * np.tile(with_mask, H) * mean_or_one(dm, on_contour)
+    if config.coverage_weight > 0 and edges.mesh is not None:
+        points = [v.mask_points if v.mask_points is not None else np.zeros((0, 2)) for v in views]
+        cost += config.coverage_weight * silhouette_misses(edges.mesh, R_cam, t_cam, K, points * H)
     return cost.reshape(H, V)
 
 

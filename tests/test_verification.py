@@ -15,7 +15,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posefuse.estimator.camera import Camera
-from posefuse.estimator.edges import EdgeConfig, edge_view, model_edges, pose_edges
+from posefuse.estimator.edges import (
+    EdgeConfig,
+    edge_view,
+    model_edges,
+    pose_edges,
+    silhouette_misses,
+)
 from posefuse.estimator.geometry import invert, make_transform, rotation_angle, so3_exp
 from posefuse.estimator.mixture import closest_equivalent
 from posefuse.estimator.nbv import look_at
@@ -111,6 +117,51 @@ def test_a_flipped_screw_is_told_apart_by_a_second_view_not_the_first(robi_catal
     # with the first view alone the two differ by less than half what the second view adds
     alone = verify(edges, views[:1], flipped[None], np.array([1.0]), variants, center, CONFIG)
     assert np.ptp(alone.cost) < 0.5 * (second[1] - second[0])
+
+
+def test_a_silhouette_covers_the_mask_of_its_truth_and_not_that_of_a_flip_or_a_shift(
+    robi_catalog,
+):
+    """The mask's points lie inside the mask, spread over it; the truth's silhouette covers
+    them, the flip's leaves the end where the head shows uncovered, a pose one diameter aside
+    all of them."""
+    screw = _model(robi_catalog, "chrome_screw")
+    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    center = T_world_obj[:3, 3]
+    (view,) = _views(screw, T_world_obj, [center + np.array([0.35, 0.12, 0.22])], CHROME)
+    points = view.mask_points
+    assert 0 < len(points) <= CONFIG.edges.coverage_points
+    inside = view.mask_dt[points[:, 1].astype(int), points[:, 0].astype(int)]
+    assert np.all(inside > 0)  # a pixel in from the boundary, where the distance is 0
+    # spread along the screw, not bunched at one end: the diameter spans diameter_px
+    assert np.ptp(points, axis=0).max() > 0.3 * CONFIG.edges.diameter_px
+    truth = T_world_obj[:3, :3]
+    flipped = truth @ so3_exp(np.array([np.pi, 0.0, 0.0]))
+    R_cam = np.array([view.T_cam_world[:3, :3] @ R for R in (truth, flipped, truth)])
+    t_cam = view.T_cam_world[:3, :3] @ center + view.T_cam_world[:3, 3]
+    aside = view.T_cam_world[:3, :3] @ np.array([screw.diameter, 0.0, 0.0])
+    t_cam = np.array([t_cam, t_cam, t_cam + aside])
+    K = np.array([view.K_roi] * 3)
+    edges = _edges(screw)  # its mesh, decimated, is the one scoring casts rays at
+    missed = silhouette_misses(edges.mesh, R_cam, t_cam, K, [points] * 3)
+    assert missed[0] <= 0.05, missed
+    assert missed[1] >= missed[0] + 0.04, missed  # the head's end: 4 of the 64 points
+    assert missed[2] >= 0.9, missed
+    # the term in the score: the flip costs the more for it, the truth not at all more
+    with_term = replace(CONFIG, coverage_weight=1.0)
+    without = replace(CONFIG, coverage_weight=0.0)
+    both = np.array([truth, flipped])
+    gain = score_hypotheses(edges, [view], both, center, with_term) - score_hypotheses(
+        edges, [view], both, center, without
+    )
+    np.testing.assert_allclose(gain[:, 0], missed[:2], atol=1e-12)
+    # a pose without points, or a view without a mask, adds nothing
+    bare = replace(view, mask_dt=None, mask_points=None)
+    np.testing.assert_allclose(
+        score_hypotheses(edges, [bare], both, center, with_term),
+        score_hypotheses(edges, [bare], both, center, without),
+    )
+    assert silhouette_misses(edges.mesh, R_cam[:1], t_cam[:1], K[:1], [np.zeros((0, 2))])[0] == 0
 
 
 def test_a_new_view_that_sees_the_flip_disagrees_with_it_and_one_that_cannot_agrees(
@@ -265,7 +316,8 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
     verified = refined_count = 0
     for track in estimator.tracks.values():
         assert len(track.edge_views) <= 2
-        assert sum(v.nbytes for v in track.edge_views) <= 2 * 9 * 96 * 96
+        # 8 chamfer maps and the mask's, and at most 64 of the mask's points (x, y) in int16
+        assert sum(v.nbytes for v in track.edge_views) <= 2 * (9 * 96 * 96 + 64 * 2 * 2)
         if track.verdict is None:
             continue
         verified += 1
@@ -846,6 +898,14 @@ def _dense_scores(edges, views, R_world_obj, t_world_obj, config):
                 n = use.sum()
                 mean = dist[use].sum() / max(n, 1) / ec.truncate_px
                 cost[h, v] += weight * (mean if n >= config.min_points else 1.0)
+            if config.coverage_weight > 0 and view.mask_points is not None:
+                # the mesh moved into the camera, the rays from its centre through the points
+                seen = edges.mesh.copy()
+                seen.apply_transform(make_transform(R_cam[0], t_cam[0]))
+                uv1 = np.column_stack([view.mask_points, np.ones(len(view.mask_points))])
+                rays = uv1 @ np.linalg.inv(view.K_roi).T
+                hit = seen.ray.intersects_any(np.zeros_like(rays), rays)
+                cost[h, v] += config.coverage_weight * np.mean(~hit)
     return cost
 
 
@@ -855,8 +915,9 @@ def _dense_scores(edges, views, R_world_obj, t_world_obj, config):
         CONFIG,
         VerificationConfig(mask_weight=0.5, crease_weight=0.0),
         VerificationConfig(mask_weight=0.0),
+        VerificationConfig(coverage_weight=1.0),
     ],
-    ids=["defaults", "light mask, no creases", "no mask term"],
+    ids=["defaults", "light mask, no creases", "no mask term", "coverage"],
 )
 def test_scores_are_those_of_every_sample_read_pose_by_pose(robi_catalog, config):
     from dataclasses import replace
