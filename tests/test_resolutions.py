@@ -102,10 +102,15 @@ def test_a_frame_too_small_for_the_front_end_is_refused_and_counted():
             )
         stats = daemon.stats()
         assert stats["processing_errors"] == 0 and stats["frames_processed"] == 0, stats
-        # every frame that arrived was refused with its reason, none failed in the network
-        assert (
-            stats["frames_dropped"]["unsupported_image_too_small"]
-            == (stats["cameras"]["cam_tiny"]["images"])
-        ), stats
+        # every frame that arrived was refused with its reason, none failed in the network. On
+        # a busy machine a frame may also be shed for load before its size is looked at (its
+        # queue full, its pose or its turn too late): counted too, and for nothing else
+        dropped = stats["frames_dropped"]
+        shed = {"queue_full", "memory", "late", "no_pose", "ingest_full"}
+        assert dropped["unsupported_image_too_small"] >= 5, stats
+        assert set(dropped) <= {"unsupported_image_too_small"} | shed, dropped
+        # the camera's count is of the frames that passed ingest, as every reason but its own
+        counted = sum(n for reason, n in dropped.items() if reason != "ingest_full")
+        assert counted == stats["cameras"]["cam_tiny"]["images"], stats
     finally:
         daemon.stop()
