@@ -154,7 +154,8 @@ def test_a_silhouette_covers_the_mask_of_its_truth_and_not_that_of_a_flip_or_a_s
     gain = score_hypotheses(edges, [view], both, center, with_term) - score_hypotheses(
         edges, [view], both, center, without
     )
-    np.testing.assert_allclose(gain[:, 0], missed[:2], atol=1e-12)
+    # the same rays up to rounding: a grazing one may fall either way, one point of 64 at most
+    np.testing.assert_allclose(gain[:, 0], missed[:2], atol=1.0 / 64 + 1e-12)
     # a pose without points, or a view without a mask, adds nothing
     bare = replace(view, mask_dt=None, mask_points=None)
     np.testing.assert_allclose(
@@ -929,7 +930,17 @@ def test_scores_are_those_of_every_sample_read_pose_by_pose(robi_catalog, config
     R = np.array([T_world_obj[:3, :3] @ so3_exp(rng.normal(0.0, 0.4, 3)) for _ in range(5)])
     t = T_world_obj[:3, 3]
     got = score_hypotheses(edges, views, R, t, config)
-    np.testing.assert_allclose(got, _dense_scores(edges, views, R, t, config), atol=1e-12)
+    # the edges' terms exactly; the silhouette's to one of a view's points, since a ray that
+    # grazes the silhouette may fall either way when the rays are turned instead of the mesh
+    # (another rounding, another CPU)
+    edges_only = replace(config, coverage_weight=0.0)
+    np.testing.assert_allclose(
+        score_hypotheses(edges, views, R, t, edges_only),
+        _dense_scores(edges, views, R, t, edges_only),
+        atol=1e-12,
+    )
+    atol = 1e-12 + config.coverage_weight / config.edges.coverage_points
+    np.testing.assert_allclose(got, _dense_scores(edges, views, R, t, config), atol=atol)
     assert score_hypotheses(edges, [], R, t, config).shape == (5, 0)
 
 
