@@ -1,4 +1,5 @@
-"""Measures of the back end against ground truth: association quality, translation error, NEES.
+"""Measures of the back end against ground truth: association quality, translation error, NEES
+of the translation and of the published pose.
 
 Detections carry the index of the true instance they came from (-1 for a false positive). A
 track's identity is the instance most of its detections came from.
@@ -15,6 +16,9 @@ from collections import Counter, defaultdict
 from dataclasses import dataclass
 
 import numpy as np
+
+from posefuse.estimator.geometry import so3_log
+from posefuse.estimator.mixture import closest_equivalent
 
 
 @dataclass(frozen=True)
@@ -74,3 +78,31 @@ def update_members(
 def nees(error: np.ndarray, cov: np.ndarray) -> float:
     """Normalised estimation error squared e^T P^-1 e (expected value: the dimension)."""
     return float(error @ np.linalg.solve(cov, error))
+
+
+def pose_nees(
+    T_world_est: np.ndarray,
+    cov: np.ndarray,
+    T_world_true: np.ndarray,
+    discrete: np.ndarray,
+    continuous_axes: np.ndarray,
+) -> tuple[float, float]:
+    """The NEES of a published pose's translation and of its rotation (each expected 3 when
+    the covariance is honest; median 2.37).
+
+    The rotation error is the left perturbation, world frame, taking the symmetric equivalent
+    of the estimate closest to the truth onto the truth (the convention of the published
+    covariance: docs/conventions.md), so a symmetric part is not charged for its symmetry.
+
+    Args:
+        T_world_est, T_world_true: (4, 4); cov: (6, 6) over x, y, z, rot_x, rot_y, rot_z;
+        discrete: (D, 3, 3) object-frame symmetries with the identity; continuous_axes: (A, 3).
+    Returns:
+        (translation NEES, rotation NEES).
+    """
+    R_eq, _ = closest_equivalent(
+        T_world_est[:3, :3], T_world_true[:3, :3], discrete, continuous_axes
+    )
+    e_t = T_world_true[:3, 3] - T_world_est[:3, 3]
+    e_R = so3_log(T_world_true[:3, :3] @ R_eq.T)
+    return nees(e_t, cov[:3, :3]), nees(e_R, cov[3:, 3:])

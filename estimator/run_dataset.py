@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import csv
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,7 @@ from posefuse.estimator.metrics import (
     AssociationScore,
     association_score,
     nees,
+    pose_nees,
     track_identities,
     update_members,
 )
@@ -76,6 +77,9 @@ class DatasetRun:
     results: dict[int, list[PoseResult]]
     targets: dict[int, list[tuple[int, int]]]
     fates: tuple[InstanceFate, ...] = ()
+    # per checkpoint, the NEES (translation, rotation) of each published pose of a confirmed
+    # track against its instance (visib_fract > 0.75), with the rotation step
+    pose_nees: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
 
 
 def run_dataset(
@@ -94,6 +98,7 @@ def run_dataset(
     rows: list[TranslationRow] = []
     fates: list[InstanceFate] = []
     results: dict[int, list[PoseResult]] = {n: [] for n in checkpoints}
+    covariance: dict[int, list[tuple[float, float]]] = {n: [] for n in checkpoints}
     targets: dict[int, list[tuple[int, int]]] = {n: [] for n in checkpoints}
     members_all: dict[str, list[int]] = {}
     confirmed_all: set[str] = set()
@@ -137,6 +142,8 @@ def run_dataset(
             if rotation:
                 fates += instance_fates(view, dataset.catalog, count, poses, dict(members))
             identity = track_identities(members)
+            if rotation:
+                covariance[count] += _published_nees(estimator, view, identity, dataset.catalog)
             cam_centre = view.T_world_cam[:3, 3]
             for oid, track in sorted(estimator.tracks.items()):
                 gt_idx = identity.get(oid, -1)
@@ -165,7 +172,24 @@ def run_dataset(
         }
     bar.close()
     score = association_score(members_all, confirmed_all, n_true)
-    return DatasetRun(tuple(rows), score, results, targets, tuple(fates))
+    return DatasetRun(tuple(rows), score, results, targets, tuple(fates), covariance)
+
+
+def _published_nees(estimator, view, identity, catalog, min_visib: float = 0.75):
+    """(translation, rotation) NEES of each published pose of a confirmed track whose instance
+    shows more than ``min_visib`` in ``view`` (:func:`estimator.metrics.pose_nees`)."""
+    gts = {gt.gt_idx: gt for gt in view.gts if gt.visib_fract > min_visib}
+    out = []
+    for e in estimator.estimates():
+        gt = gts.get(identity.get(e.object_id, -1))
+        if gt is None or not e.hypotheses or e.status != CONFIRMED or gt.obj_id != e.class_id:
+            continue
+        model = catalog[e.class_id]
+        discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+        axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+        T_true = view.T_world_cam @ gt.T_cam_obj
+        out.append(pose_nees(e.T_world_obj, e.cov, T_true, discrete, axes))
+    return out
 
 
 def write_fates(path: str | Path, fates: tuple[InstanceFate, ...]) -> Path:
@@ -249,4 +273,14 @@ def summary_markdown(run: DatasetRun, catalog, checkpoints: tuple[int, ...] = CH
             f"Mean NEES of the 3D translation after {max(checkpoints)} views: "
             f"{np.mean(last):.2f} (expected 3), median {np.median(last):.2f} (expected 2.37)."
         )
+    for n in checkpoints:
+        pairs = np.array(run.pose_nees.get(n, []), float).reshape(-1, 2)
+        if len(pairs):
+            inside = np.mean(pairs <= 7.815, axis=0) * 100  # chi2, 3 dof, 95%
+            median = np.median(pairs, axis=0)
+            lines.append(
+                f"Published poses after {n} views ({len(pairs)}): median NEES of the "
+                f"translation {median[0]:.2f}, of the rotation {median[1]:.2f} (expected 2.37); "
+                f"inside their 95% ellipsoid {inside[0]:.0f}% and {inside[1]:.0f}%."
+            )
     return "\n".join(lines)

@@ -74,6 +74,44 @@ def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalo
         assert np.trace(out.cov[3:, 3:]) < 3 * np.deg2rad(20.0) ** 2
 
 
+def test_the_published_covariance_adds_its_floor_and_covers_the_error(robi_catalog):
+    """From three starts 10 degrees and 0.05 d off, the refined pose's error, translation and
+    rotation (left perturbation, world frame, to the closest symmetric equivalent), lies
+    inside the published covariance's 99% ellipsoid (chi2 with 6 degrees of freedom). The floor
+    is added to the inverse information and changes nothing else: without it the pose, cost
+    and steps are the same to the bit, and the covariance is the floored one less the floor."""
+    from posefuse.estimator.geometry import so3_log
+
+    model, T_world_obj, views, edges = _tube_once(robi_catalog)
+    R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+    config = RefineConfig(iterations=20)
+    bare = dataclasses.replace(config, floor_translation_frac=0.0, floor_rotation_deg=0.0)
+    floor = np.diag(
+        [(config.floor_translation_frac * model.diameter) ** 2] * 3
+        + [np.deg2rad(config.floor_rotation_deg) ** 2] * 3
+    )
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        shift = rng.normal(size=3)
+        shift *= 0.05 * model.diameter / np.linalg.norm(shift)
+        R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
+        out = _refine_from(model, edges, views, R0, t_true + shift, config)
+        assert out.accepted
+        R_eq, _ = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
+        error = np.concatenate([t_true - out.t_world_obj, so3_log(R_true @ R_eq.T)])
+        assert float(error @ np.linalg.solve(out.cov, error)) < 16.81  # chi2, 6 dof, 99%
+        plain = _refine_from(model, edges, views, R0, t_true + shift, bare)
+        np.testing.assert_array_equal(plain.R_world_obj, out.R_world_obj)
+        np.testing.assert_array_equal(plain.t_world_obj, out.t_world_obj)
+        assert (plain.cost, plain.iterations) == (out.cost, out.iterations)
+        np.testing.assert_allclose(out.cov - floor, plain.cov, rtol=1e-9, atol=1e-18)
+    with pytest.raises(ValueError, match="refinement config"):
+        RefineConfig(floor_rotation_deg=-1.0)
+
+
 def test_the_default_bounds_accept_a_start_twenty_degrees_off_and_bring_it_back(robi_catalog):
     """A template match in a pile can be 20 degrees off in its true basin: with the default
     bounds (``accept_deg``) the refinement that brings it back within 2 degrees is accepted, while
@@ -376,8 +414,8 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
 def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance():
     """Views whose maps are all at the truncation say nothing: the refinement moves the
     translation onto its prior's mean, keeps the rotation at the start (its prior's mean), and
-    its covariance is the priors', the rotation's floored at ``rotation_floor_deg``. One view
-    is enough to run."""
+    its covariance is the priors', the rotation's floored at ``rotation_floor_deg``, plus the
+    floor every published covariance carries. One view is enough to run."""
     rng = np.random.default_rng(2)
     P = 40
     points = rng.uniform(-0.03, 0.03, size=(P, 3))
@@ -413,7 +451,12 @@ def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance()
     expected = np.zeros((6, 6))
     expected[:3, :3] = cov_t
     expected[3:, 3:] = V @ np.diag(np.deg2rad([3.0, 10.0, 20.0]) ** 2) @ V.T
-    np.testing.assert_allclose(out.cov, expected, rtol=1e-6, atol=1e-15)
+    config = RefineConfig()
+    floor = np.diag(
+        [(config.floor_translation_frac * 0.08) ** 2] * 3
+        + [np.deg2rad(config.floor_rotation_deg) ** 2] * 3
+    )
+    np.testing.assert_allclose(out.cov, expected + floor, rtol=1e-6, atol=1e-15)
     # the costs it reports: the data's (constant) plus the translation prior's
     r0, r1 = t0 - t_prior, out.t_world_obj - t_prior
     prior_drop = float(r0 @ np.linalg.solve(cov_t, r0) - r1 @ np.linalg.solve(cov_t, r1))

@@ -88,6 +88,37 @@ def test_both_steps_end_to_end_and_deterministic(small_dataset_root, default_ban
     for x, y in zip(a.results[2], b.results[2], strict=True):
         assert (x.scene_id, x.im_id, x.obj_id, x.score) == (y.scene_id, y.im_id, y.obj_id, y.score)
         np.testing.assert_array_equal(x.T_cam_obj, y.T_cam_obj)
+    # every published pose of a confirmed track is measured against its covariance
+    assert len(a.pose_nees[2]) > 5 and a.pose_nees[2] == b.pose_nees[2]
+    assert np.all(np.isfinite(a.pose_nees[2])) and np.all(np.array(a.pose_nees[2]) >= 0)
+
+
+def test_pose_nees_charges_the_error_under_the_covariance_and_not_the_symmetry():
+    """An estimate that is the truth turned by a symmetry, then moved by (e_t, dphi), has the
+    NEES of (e_t, dphi) under the covariance's blocks: the symmetry costs nothing."""
+    import numpy as np
+
+    from posefuse.estimator.geometry import so3_exp
+    from posefuse.estimator.metrics import pose_nees
+
+    rng = np.random.default_rng(4)
+    flip = so3_exp(np.array([0.0, 0.0, np.pi]))  # 180 degrees about z
+    discrete = np.stack([np.eye(3), flip])
+    T_true = np.eye(4)
+    T_true[:3, :3] = so3_exp(rng.normal(size=3))
+    T_true[:3, 3] = rng.normal(size=3)
+    e_t, dphi = np.array([0.002, -0.001, 0.003]), np.deg2rad([1.0, -2.0, 0.5])
+    T_est = np.eye(4)
+    T_est[:3, :3] = so3_exp(-dphi) @ T_true[:3, :3] @ flip
+    T_est[:3, 3] = T_true[:3, 3] - e_t
+    A = rng.normal(size=(6, 6))
+    cov = A @ A.T + 1e-4 * np.eye(6)
+    n_t, n_R = pose_nees(T_est, cov, T_true, discrete, np.zeros((0, 3)))
+    np.testing.assert_allclose(n_t, e_t @ np.linalg.solve(cov[:3, :3], e_t), rtol=1e-9)
+    np.testing.assert_allclose(n_R, dphi @ np.linalg.solve(cov[3:, 3:], dphi), rtol=1e-6)
+    # without the symmetry in the catalog, the flip is charged in full
+    _, n_flip = pose_nees(T_est, cov, T_true, discrete[:1], np.zeros((0, 3)))
+    assert n_flip > 100 * n_R
 
 
 @pytest.fixture(scope="module")
