@@ -131,7 +131,8 @@ def run_dataset(
                 continue
             targets[count].append((scene_id, im_id))
             poses = []
-            for e in estimator.estimates(include_tentative=True):
+            estimates = estimator.estimates(include_tentative=True)
+            for e in estimates:
                 reported = bool(e.hypotheses) and (count == 1 or e.status == CONFIRMED)
                 T_cam_obj = view.T_cam_world @ e.T_world_obj if reported else None
                 poses.append(TrackPose(e.object_id, e.class_id, e.confidence, T_cam_obj))
@@ -143,7 +144,7 @@ def run_dataset(
                 fates += instance_fates(view, dataset.catalog, count, poses, dict(members))
             identity = track_identities(members)
             if rotation:
-                covariance[count] += _published_nees(estimator, view, identity, dataset.catalog)
+                covariance[count] += _published_nees(estimates, view, identity, dataset.catalog)
             cam_centre = view.T_world_cam[:3, 3]
             for oid, track in sorted(estimator.tracks.items()):
                 gt_idx = identity.get(oid, -1)
@@ -175,12 +176,13 @@ def run_dataset(
     return DatasetRun(tuple(rows), score, results, targets, tuple(fates), covariance)
 
 
-def _published_nees(estimator, view, identity, catalog, min_visib: float = 0.75):
-    """(translation, rotation) NEES of each published pose of a confirmed track whose instance
-    shows more than ``min_visib`` in ``view`` (:func:`estimator.metrics.pose_nees`)."""
+def _published_nees(estimates, view, identity, catalog, min_visib: float = 0.75):
+    """(translation, rotation) NEES of each published pose of a confirmed track, among
+    ``estimates`` (ObjectEstimate), whose instance shows more than ``min_visib`` in ``view``
+    (:func:`estimator.metrics.pose_nees`)."""
     gts = {gt.gt_idx: gt for gt in view.gts if gt.visib_fract > min_visib}
     out = []
-    for e in estimator.estimates():
+    for e in estimates:
         gt = gts.get(identity.get(e.object_id, -1))
         if gt is None or not e.hypotheses or e.status != CONFIRMED or gt.obj_id != e.class_id:
             continue

@@ -47,6 +47,20 @@ def _refine_from(model, edges, views, R0, t0, config, **kwargs):
     )
 
 
+def _starts_ten_degrees_and_five_percent_off(model, R_true, t_true, n=3, seed=7):
+    """n starts (R0, t0), each turned 10 degrees about a random axis and moved 0.05 d in a
+    random direction from the truth."""
+    rng = np.random.default_rng(seed)
+    starts = []
+    for _ in range(n):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        shift = rng.normal(size=3)
+        shift *= 0.05 * model.diameter / np.linalg.norm(shift)
+        starts.append((so3_exp(np.deg2rad(10.0) * axis) @ R_true, t_true + shift))
+    return starts
+
+
 @pytest.mark.parametrize("stride", [1, 3])
 def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalog, stride):
     """From 10 degrees and 0.05 d off, back within 2 degrees and 0.02 d; also reading every
@@ -54,14 +68,7 @@ def test_refinement_converges_back_from_ten_degrees_and_five_percent(robi_catalo
     model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
     discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
-    rng = np.random.default_rng(7)
-    for _ in range(3):
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        shift = rng.normal(size=3)
-        shift *= 0.05 * model.diameter / np.linalg.norm(shift)
-        R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
-        t0 = t_true + shift
+    for R0, t0 in _starts_ten_degrees_and_five_percent_off(model, R_true, t_true):
         # the prior sits where the start is: it does not know the truth
         config = RefineConfig(iterations=20, sample_stride=stride)
         out = _refine_from(model, edges, views, R0, t0, config)
@@ -91,19 +98,13 @@ def test_the_published_covariance_adds_its_floor_and_covers_the_error(robi_catal
         [(config.floor_translation_frac * model.diameter) ** 2] * 3
         + [np.deg2rad(config.floor_rotation_deg) ** 2] * 3
     )
-    rng = np.random.default_rng(7)
-    for _ in range(3):
-        axis = rng.normal(size=3)
-        axis /= np.linalg.norm(axis)
-        shift = rng.normal(size=3)
-        shift *= 0.05 * model.diameter / np.linalg.norm(shift)
-        R0 = so3_exp(np.deg2rad(10.0) * axis) @ R_true
-        out = _refine_from(model, edges, views, R0, t_true + shift, config)
+    for R0, t0 in _starts_ten_degrees_and_five_percent_off(model, R_true, t_true):
+        out = _refine_from(model, edges, views, R0, t0, config)
         assert out.accepted
         R_eq, _ = closest_equivalent(out.R_world_obj, R_true, discrete, np.zeros((0, 3)))
         error = np.concatenate([t_true - out.t_world_obj, so3_log(R_true @ R_eq.T)])
         assert float(error @ np.linalg.solve(out.cov, error)) < 16.81  # chi2, 6 dof, 99%
-        plain = _refine_from(model, edges, views, R0, t_true + shift, bare)
+        plain = _refine_from(model, edges, views, R0, t0, bare)
         np.testing.assert_array_equal(plain.R_world_obj, out.R_world_obj)
         np.testing.assert_array_equal(plain.t_world_obj, out.t_world_obj)
         assert (plain.cost, plain.iterations) == (out.cost, out.iterations)
