@@ -23,14 +23,16 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from posefuse.bench.machine import describe_machine
+
 SEEDS = {"mixed": 6300, "robi": 6400}
 MARK_BEGIN = "<!-- bench.active: begin -->"
 MARK_END = "<!-- bench.active: end -->"
 
 
 def run(profiles, n_scenes: int, budget: int, progress: bool = True) -> dict:
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
     from posefuse.sim.active import POLICIES, ActiveConfig, RenderedScene, run_policy, score_steps
@@ -160,15 +162,10 @@ def write_section(path: Path, section: str) -> None:
     path.write_text(text)
 
 
-def _machine() -> str:
-    from posefuse.bench.paper_tables import _machine as machine
-
-    return machine()
-
-
 def speed(repeats: int = 20) -> dict:
     """Median seconds to score 100 candidates for 30 tracks with 3 rotation components each."""
-    from posefuse.estimator.geometry import random_rotations
+    from posefuse.estimator.core.geometry import random_rotations
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.nbv import (
         BinRegion,
         NbvTrack,
@@ -176,7 +173,6 @@ def speed(repeats: int = 20) -> dict:
         default_candidates,
         score_candidates,
     )
-    from posefuse.estimator.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.resources import DEFAULT_CATALOG
     from posefuse.sim.scenes import REALSENSE_1280x720
@@ -224,10 +220,10 @@ def picture(path: Path, profile: str = "robi", scene_id: int = 0, views: int = 2
     squares, the chosen next view ringed in red, the tracks' centres as crosses."""
     import cv2
 
-    from posefuse.estimator.camera import Camera
+    from posefuse.estimator.core.camera import Camera
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.frontend.network import NetworkFrontend
     from posefuse.estimator.nbv import appearance_index, look_at, score_candidates, tracks_for_nbv
-    from posefuse.estimator.objects import load_catalog
     from posefuse.estimator.tracker import Frame, MultiViewEstimator
     from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
     from posefuse.sim.active import ActiveConfig, RenderedScene
@@ -350,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
         s = speed()
         print(
             f"nbv scoring: {s['candidates']} candidates x {s['tracks']} tracks: "
-            f"median {s['median_ms']:.1f} ms, max {s['max_ms']:.1f} ms ({_machine()})"
+            f"median {s['median_ms']:.1f} ms, max {s['max_ms']:.1f} ms ({describe_machine()})"
         )
         return 0
     for item in args.seeds:
@@ -363,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = {
         "command": "python -m posefuse.bench.active " + " ".join(shlex.quote(a) for a in argv),
         "minutes": (time.perf_counter() - start) / 60,
-        "machine": _machine(),
+        "machine": describe_machine(),
     }
     section = markdown(results, meta, args.budget)
     out = Path(args.out)

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
-from posefuse.estimator.run_dataset import LabelledNetworkFrontend, run_dataset, summary_markdown
 from posefuse.estimator.tracker import TrackerConfig
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
+from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset, summary_markdown
 
 
 class CachedFrontend:

@@ -29,8 +29,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from posefuse.estimator.geometry import so3_exp
-from posefuse.estimator.rotation import (
+from posefuse.estimator.core.geometry import so3_exp
+from posefuse.estimator.rotation.matching import (
     RotationMatcher,
     RotationMeasurement,
     ray_correction,

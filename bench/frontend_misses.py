@@ -25,9 +25,9 @@ from collections import Counter
 
 import numpy as np
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.metrics import match_to_truth
 from posefuse.estimator.frontend.network import NetworkFrontend
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.frontend_metrics import match_to_truth
 from posefuse.service.resources import DEFAULT_MODEL
 
 FATES = (

@@ -6,7 +6,7 @@
 ``DIR`` is a rendered training set (``posefuse train --data-dir``: the folder that holds
 ``meta.json``). Its first ``--views`` views of each profile (one in two, so that two views of a
 scene do not both count) go through the front end, and are scored as ``eval-frontend`` scores a
-BOP dataset (``estimator.frontend.metrics``): detections matched one to one to the annotated
+BOP dataset (``evaluation.frontend_metrics``): detections matched one to one to the annotated
 parts of their class within 15 px; recall over the parts more than 75% visible, precision over
 every detection. Far better numbers here than on the tuning sets mean the network has learned
 these views rather than the task: more scenes, or more augmentation, is then what it needs.
@@ -18,9 +18,9 @@ import argparse
 
 import numpy as np
 
-from posefuse.estimator.frontend.metrics import match_centers
+from posefuse.estimator.core.objects import load_catalog
 from posefuse.estimator.frontend.network import NetworkFrontend
-from posefuse.estimator.objects import load_catalog
+from posefuse.evaluation.frontend_metrics import match_centers
 from posefuse.service.resources import DEFAULT_MODEL
 
 MAX_PX = 15.0

@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from posefuse.estimator.dataset import load_dataset
 from posefuse.estimator.frontend.network import NetworkFrontend, input_scale_for
+from posefuse.evaluation.dataset import load_dataset
 
 
 def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:

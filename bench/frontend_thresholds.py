@@ -13,9 +13,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.metrics import score_frontend
 from posefuse.estimator.frontend.network import NetworkFrontend
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.frontend_metrics import score_frontend
 
 
 def main(argv: list[str] | None = None) -> int:

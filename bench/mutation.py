@@ -58,7 +58,7 @@ SKIP_TOP = {"tests", "docs", "build", "dist", "runs", "data", "out", "mutants"}
 
 
 def module_name(arg: str) -> str:
-    """'geometry', 'estimator/geometry.py' or 'posefuse.estimator.geometry' -> 'geometry'."""
+    """'geometry', 'estimator/geometry.py' or 'posefuse.estimator.core.geometry' -> 'geometry'."""
     name = arg.replace("\\", "/").removesuffix(".py").replace("/", ".")
     name = name.removeprefix("posefuse.").removeprefix("estimator.")
     if not (REPO / "estimator" / f"{name}.py").is_file():
@@ -183,7 +183,7 @@ def load_equivalent(name: str) -> list[dict]:
 
 
 def function_of(mutant: str) -> str:
-    """'posefuse.estimator.geometry.x_so3_log__mutmut_3' -> 'so3_log' (class methods too)."""
+    """'posefuse.estimator.core.geometry.x_so3_log__mutmut_3' -> 'so3_log' (class methods too)."""
     mangled = mutant.rpartition(".")[2].partition("__mutmut_")[0]
     if mangled.startswith("x\u01c1"):  # xǁClassǁmethod
         return mangled[2:].replace("\u01c1", ".")
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
-        "module", help="geometry, estimator/geometry.py or posefuse.estimator.geometry"
+        "module", help="geometry, estimator/geometry.py or posefuse.estimator.core.geometry"
     )
     parser.add_argument("--tests", nargs="+", help="test files (default: the module's own)")
     parser.add_argument("--workdir", type=Path, help="scratch copy (default under $TMPDIR)")

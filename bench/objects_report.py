@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 
-from posefuse.estimator.eval_points import EVAL_SPACING, derive_eval_points
-from posefuse.estimator.objects import load_mesh, mesh_diameter
-from posefuse.estimator.pose_error import symmetry_transformations
-from posefuse.estimator.symmetry import (
+from posefuse.estimator.core.objects import load_mesh, mesh_diameter
+from posefuse.estimator.core.symmetry import (
     DEFAULT_EXACT_FRAC,
     DEFAULT_NEAR_FRAC,
     DEFAULT_TOL_FRAC,
     detect_symmetries,
 )
+from posefuse.evaluation.eval_points import EVAL_SPACING, derive_eval_points
+from posefuse.evaluation.pose_error import symmetry_transformations
 
 REAL_MESH_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "objects"
 REAL_MESHES = ("tee_fitting", "screw", "eye_bolt", "gear", "bracket")

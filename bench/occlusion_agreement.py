@@ -3,9 +3,9 @@
 python -m posefuse.bench.occlusion_agreement [--catalog DIR] [--poses 200] [--seed 1]
 
 For each part of the catalog: random turns, the part 4 to 12 diameters in front of the camera,
-and the samples that show (:func:`estimator.edges.pose_edges`) with the occlusion table against
-those with the rays of every pose (``occlusion_directions=0``). Prints, per part, the samples
-the table shows that the rays hide, those it hides that the rays show, and how many show
+and the samples that show (:func:`estimator.verification.edges.pose_edges`) with the occlusion table
+against those with the rays of every pose (``occlusion_directions=0``). Prints, per part, the
+samples the table shows that the rays hide, those it hides that the rays show, and how many show
 without any occlusion test; the contour's the same way.
 """
 
@@ -16,8 +16,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from posefuse.estimator.edges import EdgeConfig, model_edges, pose_edges
-from posefuse.estimator.geometry import so3_exp
+from posefuse.estimator.core.geometry import so3_exp
+from posefuse.estimator.verification.edges import EdgeConfig, model_edges, pose_edges
 
 
 def agreement(model, n_poses: int, seed: int) -> dict[str, int]:
@@ -44,7 +44,7 @@ def agreement(model, n_poses: int, seed: int) -> dict[str, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.service.resources import DEFAULT_CATALOG
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

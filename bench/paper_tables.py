@@ -14,7 +14,7 @@ seed 0) and scores the same LINE-2D features:
 - simultaneous: our translation, rotation from templates at 9 distances without re-crop;
 - CosyPose-RGB and CosyPose-RGBD: per-view 6D poses fused across views (bench/baselines.py).
 
-Scores (estimator.evaluation): ADD-sym < 0.1 d (the headline), MSSD < 0.1 d, AR_MSSD and
+Scores (evaluation.scores): ADD-sym < 0.1 d (the headline), MSSD < 0.1 d, AR_MSSD and
 precision, with the lenient ADI beside them, for the instances more than 75% visible in the 4th
 and the 8th view of each scene, with the estimates made from the views up to it.
 """
@@ -22,8 +22,6 @@ and the 8th view of each scene, with the estimates made from the views up to it.
 from __future__ import annotations
 
 import json
-import os
-import platform
 import shlex
 import time
 from dataclasses import dataclass, field
@@ -44,13 +42,14 @@ from posefuse.bench.baselines import (
     rgb_candidate,
     rgbd_candidate,
 )
+from posefuse.bench.machine import describe_machine
 from posefuse.cli.run import tracker_config
-from posefuse.estimator.errors import PosefuseError
-from posefuse.estimator.evaluation import PoseResult, evaluate
-from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
-from posefuse.estimator.rotation import RotationMatcher
-from posefuse.estimator.run_dataset import run_dataset
+from posefuse.estimator.core.errors import PosefuseError
+from posefuse.estimator.rotation.matching import RotationMatcher
 from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
+from posefuse.evaluation.run_dataset import run_dataset
+from posefuse.evaluation.scores import PoseResult, evaluate
 
 CHECKPOINTS = (4, 8)
 FULL = {"scenes": 50, "views": 8, "seed": 300, "width": 1280, "height": 720}
@@ -92,8 +91,8 @@ def ensure_dataset(root: Path, quick: bool, catalog_dir: str, profile: str = "mi
     none."""
     import dataclasses
 
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720
     from posefuse.sim.synth import SynthConfig, generate_dataset
 
@@ -118,7 +117,7 @@ def make_frontend(dataset, kind: str, model: str | None = None):
         return OracleFrontend(dataset, ORACLE)
     if kind == "network":
         from posefuse.estimator.frontend.network import NetworkFrontend
-        from posefuse.estimator.run_dataset import LabelledNetworkFrontend
+        from posefuse.evaluation.run_dataset import LabelledNetworkFrontend
         from posefuse.service.resources import DEFAULT_MODEL
 
         return LabelledNetworkFrontend(
@@ -256,7 +255,7 @@ def score_runs(dataset, runs: dict[str, MethodRun]) -> dict:
 def closest_errors(dataset, run: MethodRun, n: int) -> dict[str, int]:
     """Each scored instance by the ADD-sym of the closest estimate of its class in its view:
     below 0.1 d, 0.1-0.5 d (estimated, inaccurate), none within 0.5 d (not estimated)."""
-    from posefuse.estimator.evaluation import pose_error
+    from posefuse.evaluation.scores import pose_error
 
     by_view: dict[tuple[int, int, int], list[PoseResult]] = {}
     for r in run.results[n]:
@@ -286,24 +285,6 @@ def closest_errors(dataset, run: MethodRun, n: int) -> dict[str, int]:
 
 def _pct(x: float) -> str:
     return "-" if x is None or np.isnan(x) else f"{100 * x:.1f}"
-
-
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = ""
-    try:
-        kb = int(Path("/proc/meminfo").read_text().split()[1])
-        mem = f", {kb / 2**20:.0f} GiB"
-    except (OSError, ValueError, IndexError):
-        pass
-    return f"{cpu}, {os.cpu_count()} cores{mem}, Python {platform.python_version()}"
 
 
 def _ms(x: float) -> str:
@@ -535,7 +516,7 @@ def dataset_seed(root: Path, default: int) -> int:
 
 
 def main(args) -> int:
-    from posefuse.estimator.templates import build_template_bank
+    from posefuse.estimator.rotation.templates import build_template_bank
 
     start = time.perf_counter()
     root = Path(args.dataset)
@@ -557,7 +538,7 @@ def main(args) -> int:
     meta = {
         "command": "posefuse bench " + " ".join(shlex.quote(a) for a in args.argv),
         "minutes": (time.perf_counter() - start) / 60,
-        "machine": _machine(),
+        "machine": describe_machine(),
         "dataset": str(root),
         "scenes": len(dataset.scene_ids),
         "views": len(first.im_ids),

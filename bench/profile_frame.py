@@ -8,7 +8,7 @@ translation, founding/merging, re-crop, template scoring, mixture, the edge maps
 verification across views and refinement), encode of every updated
 estimate and a Zenoh put of each on a session of its own. The stages inside the estimator are
 timed by wrapping the functions that implement them (``estimator.tracker`` and
-``estimator.rotation`` names), so the profile measures the code as it runs in the service.
+``estimator.rotation.matching`` names), so the profile measures the code as it runs in the service.
 Each scene is run ``--repeat`` times with a fresh estimator; the table gives the mean time per
 frame of every stage and the median and p95 of the whole frame, then how many views were kept
 with their edge maps, how many verifications and refinements ran (counts do not depend on the
@@ -82,9 +82,9 @@ class StageTimer:
 @contextlib.contextmanager
 def instrumented(timer: StageTimer):
     """Wrap the estimator's stage functions with ``timer`` for the duration of the block."""
-    import posefuse.estimator.rotation as rotation
+    import posefuse.estimator.rotation.matching as rotation
     import posefuse.estimator.tracker as tracker
-    from posefuse.estimator.mixture import RotationMixture
+    from posefuse.estimator.rotation.mixture import RotationMixture
 
     patches = [
         (tracker, "cost_matrix", "association"),
@@ -135,9 +135,9 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
     estimator's ``config`` (a TrackerConfig; default: its defaults)."""
     import zenoh
 
-    from posefuse.estimator.dataset import load_dataset
     from posefuse.estimator.frontend.network import NetworkFrontend, preprocess
     from posefuse.estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.service.codec import decoders, encode_estimate, encode_image
     from posefuse.service.resources import DEFAULT_MODEL
 

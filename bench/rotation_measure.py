@@ -25,9 +25,9 @@ from collections import defaultdict
 import numpy as np
 
 from posefuse.bench.baselines import MultiScaleMatcher
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.rotation import RotationMatcher, crop_roi
-from posefuse.estimator.templates import build_template_bank, make_detector
+from posefuse.estimator.rotation.matching import RotationMatcher, crop_roi
+from posefuse.estimator.rotation.templates import build_template_bank, make_detector
+from posefuse.evaluation.dataset import load_dataset
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -27,7 +27,7 @@ import urllib.request
 import msgpack
 import numpy as np
 
-from posefuse.estimator.dataset import load_dataset
+from posefuse.evaluation.dataset import load_dataset
 from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
 
 

@@ -33,7 +33,7 @@ CELL = "bench"
 
 def _scene_messages(spec: str) -> tuple[list, int]:
     """[(camera, T_world_cam, image message dict)] of a 'DIR:SCENE' spec and its objects/view."""
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.service.codec import encode_image
 
     path, _, scene_id = spec.rpartition(":")

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from posefuse.estimator.metrics import association_score, nees, track_identities, update_members
-from posefuse.estimator.objects import Catalog, load_catalog
+from posefuse.estimator.core.objects import Catalog, load_catalog
 from posefuse.estimator.tracker import CONFIRMED, MultiViewEstimator, TrackerConfig
+from posefuse.evaluation.tracking import association_score, nees, track_identities, update_members
 from posefuse.sim.scenes import SceneSpec
 from posefuse.sim.sequences import make_sequence
 

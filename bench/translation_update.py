@@ -15,7 +15,7 @@ import time
 
 import numpy as np
 
-from posefuse.estimator.translation import (
+from posefuse.estimator.translation.gaussian import (
     CenterObservations,
     estimate_translation,
     prior_from_first_view,

@@ -16,7 +16,7 @@ import argparse
 import cv2
 import numpy as np
 
-from posefuse.estimator.edges import pose_edges, project_edges
+from posefuse.estimator.verification.edges import pose_edges, project_edges
 
 
 def _crop(image, uv_sets, margin=30):
@@ -34,11 +34,11 @@ def _draw(image_bgr, uv, colour):
 
 def main(argv=None) -> int:
     from posefuse.cli.run import ORACLE_CENTER_SIGMA
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import pose_error
-    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
-    from posefuse.estimator.geometry import rotation_angle
+    from posefuse.estimator.core.geometry import rotation_angle
     from posefuse.estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
+    from posefuse.evaluation.scores import pose_error
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--dataset", required=True)

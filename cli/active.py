@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 from posefuse.cli.common import RUNS, add_command
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 
@@ -47,8 +47,8 @@ def register(subparsers) -> None:
 
 
 def _cmd_run_active(args: argparse.Namespace) -> int:
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.sim.active import (
         ActiveConfig,
@@ -65,7 +65,7 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
     if args.scenes < 1:
         raise PosefuseError("run-active: --scenes must be at least 1")
     if args.dataset:
-        from posefuse.estimator.dataset import load_dataset
+        from posefuse.evaluation.dataset import load_dataset
 
         dataset = load_dataset(args.dataset)
         catalog = dataset.catalog

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 
 # Outputs that nobody asked for by path go under runs/ of the current folder, never into the
 # project's own files: regenerating a committed file takes an explicit --out.

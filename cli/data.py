@@ -14,12 +14,13 @@ import time
 from pathlib import Path
 
 from posefuse.cli.common import _catalog_table, add_command
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_catalog(args: argparse.Namespace) -> int:
-    from posefuse.estimator.objects import Catalog, load_mesh, make_model, write_catalog
+    from posefuse.estimator.core.objects import Catalog, load_mesh, make_model, write_catalog
+    from posefuse.evaluation.eval_points import with_eval_points
 
     if args.mesh:
         models = []
@@ -31,7 +32,7 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
         from posefuse.sim.catalog import robi_like_catalog
 
         catalog = robi_like_catalog()
-    write_catalog(Path(args.out), catalog)
+    write_catalog(Path(args.out), with_eval_points(catalog))
     print(f"wrote {len(catalog)} objects to {args.out}")
     print(_catalog_table(catalog))
     return 0
@@ -40,7 +41,7 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
 def _cmd_synth(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.sim.scenes import INTRINSICS, PROFILES
     from posefuse.sim.synth import SynthConfig, generate_dataset
 
@@ -87,8 +88,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import evaluate, read_results, read_targets
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.scores import evaluate, read_results, read_targets
 
     dataset = load_dataset(args.dataset, split=args.split)
     results = read_results(args.results)
@@ -108,7 +109,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_overlay(args: argparse.Namespace) -> int:
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.overlay import write_gt_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)

@@ -15,7 +15,7 @@ from importlib.metadata import entry_points
 
 from posefuse.cli import active, data, onboard, record, run, serve, train
 from posefuse.cli.common import HelpFormatter
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 
 ENTRY_POINT_GROUP = "posefuse.commands"
 # The built-in groups, in the order of `posefuse --help`: append a module to add a group.

@@ -9,7 +9,7 @@ import argparse
 from pathlib import Path
 
 from posefuse.cli.common import add_command
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 
 
 def _parse_symmetry(specs: list[str] | None) -> dict[str, str]:
@@ -66,7 +66,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
 def _write_demo(out: Path) -> None:
     """DIR/demo.mcap: the held-out mixed bins as a camera publishes them, for ``demo --parts``."""
     from posefuse.clients.demo import make_recording
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(out / "validation" / "mixed")
     make_recording(dataset, dataset.scene_ids, out / "demo.mcap", catalog=dataset.catalog)

@@ -22,7 +22,7 @@ from posefuse.cli.common import (
     add_parts_arg,
     settings_default,
 )
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG
 
 
@@ -31,7 +31,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     import zenoh
 
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.service.foxglove import FoxgloveMirror
     from posefuse.service.keys import Keys
     from posefuse.service.recording import Recorder, RecordingFull
@@ -135,7 +135,7 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.foxglove import FoxgloveMirror
     from posefuse.service.recording import Recorder, RecordingError, read_messages
@@ -180,8 +180,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_make_demo(args: argparse.Namespace) -> int:
     from posefuse.clients.demo import make_recording
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.scenes import SceneSpec
     from posefuse.sim.synth import SynthConfig, generate_dataset
 

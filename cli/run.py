@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from posefuse.cli.common import RUNS, add_command, add_parts_arg
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 # The oracle front end of run-dataset (and of the quickstart): true centers with this much
@@ -54,11 +54,11 @@ def make_frontend(dataset, kind: str, oracle=None, model: str = DEFAULT_MODEL, s
     ``network`` (the learned front end, labelled with the instance each lies on for scoring)."""
     if kind == "network":
         from posefuse.estimator.frontend.network import NetworkFrontend
-        from posefuse.estimator.run_dataset import LabelledNetworkFrontend
+        from posefuse.evaluation.run_dataset import LabelledNetworkFrontend
 
         return LabelledNetworkFrontend(dataset, NetworkFrontend(model, dataset.catalog, seed=seed))
     if kind == "oracle":
-        from posefuse.estimator.frontend.oracle import OracleFrontend
+        from posefuse.evaluation.oracle import OracleFrontend
 
         return OracleFrontend(dataset, oracle)
     raise PosefuseError(f"--frontend: {kind!r} is not known; use oracle or network")
@@ -78,21 +78,21 @@ def run_and_write(
     template banks built or loaded once) and write its tables into ``out``: translation errors,
     with ``rotation`` also BOP results and targets per checkpoint, their scores and the fate of
     every scored instance."""
-    from posefuse.estimator.evaluation import (
-        checkpoint_markdown,
-        evaluate,
-        write_results,
-        write_targets,
-    )
-    from posefuse.estimator.fates import fate_table
-    from posefuse.estimator.run_dataset import (
+    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.evaluation.fates import fate_table
+    from posefuse.evaluation.run_dataset import (
         CHECKPOINTS,
         run_dataset,
         summary_markdown,
         write_fates,
         write_rows,
     )
-    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.evaluation.scores import (
+        checkpoint_markdown,
+        evaluate,
+        write_results,
+        write_targets,
+    )
 
     shared = MultiViewEstimator(dataset.catalog, config, show_progress=not quiet)
     if rotation:  # build (or load) every class's templates once, with a progress bar
@@ -172,9 +172,9 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     malformed pair or an unknown field."""
     import dataclasses
 
-    from posefuse.estimator.edges import EdgeConfig
-    from posefuse.estimator.refinement import RefineConfig
-    from posefuse.estimator.verification import VerificationConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.refinement import RefineConfig
+    from posefuse.estimator.verification.verify import VerificationConfig
 
     optional = {
         f.name for f in dataclasses.fields(VerificationConfig) if f.type == "float | None"
@@ -250,8 +250,8 @@ def tracker_config(
 
 
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.frontend.oracle import OracleConfig
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.oracle import OracleConfig
 
     if args.frontend not in ("oracle", "network"):
         raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
@@ -306,8 +306,8 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
 
 
 def _cmd_templates(args: argparse.Namespace) -> int:
-    from posefuse.estimator.objects import load_catalog
-    from posefuse.estimator.templates import build_template_bank
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.estimator.rotation.templates import build_template_bank
 
     catalog = load_catalog(args.catalog)
     rows = [
@@ -325,9 +325,9 @@ def _cmd_templates(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_frontend(args: argparse.Namespace) -> int:
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.frontend.metrics import score_frontend
     from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.frontend_metrics import score_frontend
 
     dataset = load_dataset(args.dataset, split=args.split)
     frontend = NetworkFrontend(args.model, dataset.catalog, threads=args.threads)
@@ -346,8 +346,8 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
 def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
     import cv2
 
-    from posefuse.estimator.dataset import load_dataset
     from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.overlay import frontend_overlay
 
     dataset = load_dataset(args.dataset, split=args.split)
@@ -369,10 +369,10 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
 
 
 def _cmd_quickstart(args: argparse.Namespace) -> int:
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import checkpoint_markdown
-    from posefuse.estimator.frontend.oracle import OracleConfig
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.oracle import OracleConfig
+    from posefuse.evaluation.scores import checkpoint_markdown
     from posefuse.sim.overlay import write_gt_overlay
     from posefuse.sim.scenes import SceneSpec
     from posefuse.sim.synth import SynthConfig, generate_dataset

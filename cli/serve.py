@@ -21,7 +21,7 @@ from posefuse.cli.common import (
     claim_http_port,
     settings_default,
 )
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_RECORDING
 
 
@@ -30,7 +30,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.api import create_cells_app
     from posefuse.service.cells import CellSet
@@ -162,7 +162,7 @@ def _cmd_publish(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from posefuse.clients.camera import publish, scene_messages
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.service.settings import wait_for_subscribers, zenoh_config
 
     settings = _settings(args)

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 from posefuse.cli.common import add_command
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG
 
 
@@ -21,7 +21,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise PosefuseError(
             'training needs torch: pip install -e ".[train]" (a CPU build, torch==2.13.0)'
         ) from None
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.sim.train import TrainConfig, train
 
     load_catalog(args.catalog)  # a CatalogError before any work

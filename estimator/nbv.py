@@ -8,7 +8,7 @@ components. A candidate view ``c`` scores
 
 - **translation** ``g_t``: one more center measurement from ``c`` with covariance
   ``sigma^2 I`` (px^2), linearised at the track's mean with the Jacobian of the translation step
-  (:func:`estimator.translation.predict`), gives ``P' = (P^-1 + J^T J / sigma^2)^-1``;
+  (:func:`estimator.translation.gaussian.predict`), gives ``P' = (P^-1 + J^T J / sigma^2)^-1``;
   ``g_t = 1/2 log(det(P + e^2 I) / det(P' + e^2 I))`` with ``e = precision_rel * diameter``: the
   information about the position beyond the precision a pose needs. A view along a one-view
   track's ray gains almost nothing, one across it a lot; a part known to a millimetre gains
@@ -16,12 +16,12 @@ components. A candidate view ``c`` scores
 - **rotation** ``g_r``: the mixture's leading components (at most ``max_components`` of weight
   ``>= min_weight``) are hypotheses with their renormalised weights ``w``. From ``c`` each would
   look like its nearest LINE-2D template (off-axis parts corrected by the ray's rotation as in
-  :mod:`estimator.rotation`); every symmetric equivalent of every template is in the index, so
-  a symmetric equivalent is the same template and never a difference. ``s_ij`` is the
-  similarity of two templates' gradient features (:class:`AppearanceIndex`). The view is a
-  noisy channel that reports hypothesis ``j`` when ``i`` is true with probability
-  ``s_ij^gamma / sum_k s_ik^gamma``; ``g_r`` is its mutual information: 0 when the hypotheses
-  all look alike from ``c``, up to the entropy of ``w`` when ``c`` tells them apart.
+  :mod:`estimator.rotation.matching`); every symmetric equivalent of every template is in the index,
+  so a symmetric equivalent is the same template and never a difference. ``s_ij`` is the similarity
+  of two templates' gradient features (:class:`AppearanceIndex`). The view is a noisy channel that
+  reports hypothesis ``j`` when ``i`` is true with probability ``s_ij^gamma / sum_k s_ik^gamma``;
+  ``g_r`` is its mutual information: 0 when the hypotheses all look alike from ``c``, up to the
+  entropy of ``w`` when ``c`` tells them apart.
 - **visibility** ``v`` in [0, 1]: 0 when the center projects behind the camera or outside the
   image (less the part's projected radius); else the share of the part's disk in the image not
   covered by the disks of tracks closer to the camera, and 0 when the line of sight to the
@@ -41,11 +41,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.geometry import so3_exp
-from posefuse.estimator.objects import ObjectModel
-from posefuse.estimator.templates import TemplateBank
-from posefuse.estimator.translation import MIN_DEPTH, prior_from_first_view
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import so3_exp
+from posefuse.estimator.core.objects import ObjectModel
+from posefuse.estimator.rotation.templates import TemplateBank
+from posefuse.estimator.translation.gaussian import MIN_DEPTH, prior_from_first_view
 
 N_ORIENTATIONS = 8
 NO_ROTATION = np.zeros((0, 3, 3))
@@ -487,7 +487,7 @@ def _channel_information(w: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 def _ray_rotations(t_cam: np.ndarray) -> np.ndarray:
     """(M, 3, 3) rotations taking the optical axis onto the rays through t_cam (M, 3)
-    (:func:`estimator.rotation.ray_correction`, batched)."""
+    (:func:`estimator.rotation.matching.ray_correction`, batched)."""
     d = t_cam / np.linalg.norm(t_cam, axis=1, keepdims=True)
     axis = np.cross([0.0, 0.0, 1.0], d)
     s = np.linalg.norm(axis, axis=1)

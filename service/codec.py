@@ -16,8 +16,8 @@ import msgpack
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.errors import PosefuseError
 
 VERSION = 1
 ENCODINGS = ("jpeg", "png", "mono8", "rgb8", "bgr8")

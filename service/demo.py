@@ -30,7 +30,7 @@ def score_segment(
     rotation yet (one view) or no part of its class left gets errors of ``None``."""
     from scipy.spatial.transform import Rotation
 
-    from posefuse.estimator.evaluation import pose_error
+    from posefuse.evaluation.scores import pose_error
 
     rows = []
     free = set(range(len(truth)))
@@ -86,7 +86,7 @@ def run_demo(
     import zenoh
     from tqdm import tqdm
 
-    from posefuse.estimator.objects import load_catalog
+    from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.api import create_app
     from posefuse.service.codec import decode_reset, estimate_to_dict

@@ -181,7 +181,7 @@ def compressed_image(stamp_ns: int, frame_id: str, fmt: str, data: bytes) -> dic
 
 
 def camera_calibration(stamp_ns: int, frame_id: str, camera) -> dict:
-    """camera: estimator.camera.Camera (K (3, 3), dist (5,) plumb_bob)."""
+    """camera: estimator.core.camera.Camera (K (3, 3), dist (5,) plumb_bob)."""
     K = np.asarray(camera.K, float)
     P = np.hstack([K, np.zeros((3, 1))])
     return {
@@ -282,7 +282,7 @@ class FoxgloveMessage:
 class FoxgloveMirror:
     """Turns (key, payload) messages of a cell into Foxglove messages.
 
-    ``catalog`` (an estimator.objects.Catalog) supplies the meshes of the scene entities;
+    ``catalog`` (an estimator.core.objects.Catalog) supplies the meshes of the scene entities;
     without it, estimates and ground truth give only transforms. Messages that do not decode
     give nothing (the raw channel still records them). Deterministic: the same messages give
     the same bytes.

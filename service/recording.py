@@ -19,7 +19,7 @@ from mcap.records import Channel, Footer, Message
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.foxglove import schema_bytes
 
 RAW_ENCODING = "msgpack"

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 
 FORMAT = "posefuse-state/1"
 FILENAME = "estimator.state"

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
 from posefuse.service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
 
 

@@ -24,7 +24,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from posefuse.estimator.evaluation import error_matrix, match_estimates
 from posefuse.estimator.nbv import (
     BinRegion,
     CandidateView,
@@ -35,6 +34,7 @@ from posefuse.estimator.nbv import (
     tracks_for_nbv,
 )
 from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, ObjectEstimate
+from posefuse.evaluation.scores import error_matrix, match_estimates
 
 POLICIES = ("nbv", "random", "sweep")
 MIN_VISIB = 0.75
@@ -88,7 +88,7 @@ class RenderedScene(ViewSource):
     hemisphere over the bin, rendered when first asked for."""
 
     def __init__(self, catalog, scene, spec, detect: Callable, config: ActiveConfig, seed: int):
-        from posefuse.estimator.render import Renderer
+        from posefuse.estimator.rotation.render import Renderer
         from posefuse.sim.synth import BIN_ID, _part_material
 
         self.catalog = catalog

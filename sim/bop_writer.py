@@ -14,8 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.objects import Catalog, write_catalog
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import Catalog, write_catalog
+from posefuse.evaluation.eval_points import with_eval_points
 
 DEPTH_SCALE = 0.1  # BOP: depth_mm = png_value * depth_scale
 PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 3]
@@ -52,7 +53,7 @@ def write_dataset_header(root: str | Path, camera: Camera, catalog: Catalog) -> 
         "width": camera.width,
     }
     (root / "camera.json").write_text(json.dumps(cam, indent=2) + "\n")
-    write_catalog(root / "models", catalog)
+    write_catalog(root / "models", with_eval_points(catalog))
     return root
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from posefuse.estimator.objects import Catalog, make_model
+from posefuse.estimator.core.objects import Catalog, make_model
 
 
 def robi_like_catalog() -> Catalog:

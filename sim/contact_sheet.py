@@ -12,11 +12,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.objects import ObjectModel
-from posefuse.estimator.render import DEFAULT_LIGHTING, Renderer
-from posefuse.estimator.symmetry import SymmetryReport, _surface_moments
-from posefuse.estimator.templates import look_at_rotation
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import ObjectModel
+from posefuse.estimator.core.symmetry import SymmetryReport, _surface_moments
+from posefuse.estimator.rotation.render import DEFAULT_LIGHTING, Renderer
+from posefuse.estimator.rotation.templates import look_at_rotation
 
 PANEL = 320  # pixels per render
 TEXT_WIDTH = 560

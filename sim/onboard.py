@@ -26,9 +26,16 @@ from pathlib import Path
 
 import numpy as np
 
-from posefuse.estimator.errors import PosefuseError
-from posefuse.estimator.objects import Catalog, load_mesh, make_model, mesh_diameter, write_catalog
-from posefuse.estimator.symmetry import detect_symmetries, symmetry_from_spec
+from posefuse.estimator.core.errors import PosefuseError
+from posefuse.estimator.core.objects import (
+    Catalog,
+    load_mesh,
+    make_model,
+    mesh_diameter,
+    write_catalog,
+)
+from posefuse.estimator.core.symmetry import detect_symmetries, symmetry_from_spec
+from posefuse.evaluation.eval_points import with_eval_points
 
 MANIFEST = "parts.json"
 MANIFEST_VERSION = 1
@@ -144,7 +151,7 @@ def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Cat
 
 def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print) -> dict:
     """Run every stage; returns the manifest written to ``out/parts.json``."""
-    from posefuse.estimator.templates import build_template_banks
+    from posefuse.estimator.rotation.templates import build_template_banks
     from posefuse.sim.contact_sheet import write_contact_sheet
 
     if not paths:
@@ -162,7 +169,7 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
     stages.begin(1, "catalog", f"{len(paths)} mesh(es) in {config.units}")
     catalog, reports = read_parts(paths, config, echo)
-    write_catalog(out / "catalog", catalog)
+    write_catalog(out / "catalog", with_eval_points(catalog))
     for model in catalog.values():
         info = reports[model.name]
         sheet = write_contact_sheet(model, info["report"], out / "contact" / f"{model.name}.png")
@@ -292,12 +299,12 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
 
 def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) -> dict:
     """Front-end recall/precision and ADD-sym at 4 and 8 views on held-out renders."""
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import evaluate
-    from posefuse.estimator.frontend.metrics import score_frontend
     from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.run_dataset import LabelledNetworkFrontend, run_dataset
     from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.frontend_metrics import score_frontend
+    from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
+    from posefuse.evaluation.scores import evaluate
     from posefuse.sim.scenes import PROFILES
     from posefuse.sim.synth import SynthConfig, generate_dataset
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
 
 
 def _colour(k: int) -> tuple[int, int, int]:

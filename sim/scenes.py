@@ -17,9 +17,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.objects import Catalog, ObjectModel
-from posefuse.estimator.render import MATTE, Lighting, Material, random_lighting
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import Catalog, ObjectModel
+from posefuse.estimator.rotation.render import MATTE, Lighting, Material, random_lighting
 
 REALSENSE_1280x720 = Camera(np.array([[924.0, 0, 644.0], [0, 924.0, 361.0], [0, 0, 1]]), 1280, 720)
 

@@ -4,7 +4,7 @@ For measuring the back end quickly on many scenes: the bin scenes of :mod:`sim.s
 view the oracle's detections (true projected model origin + Gaussian noise, the box of the
 projected model points, seeded drops and false positives). Occlusion is ignored: every part
 whose center projects into the image is detectable. For detections with occlusion use
-:class:`estimator.frontend.oracle.OracleFrontend` on a rendered dataset.
+:class:`evaluation.oracle.OracleFrontend` on a rendered dataset.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import Catalog
 from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.objects import Catalog
 from posefuse.estimator.tracker import Frame
 from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec, make_scene
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.geometry import invert
-from posefuse.estimator.objects import Catalog
-from posefuse.estimator.render import Renderer
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import invert
+from posefuse.estimator.core.objects import Catalog
+from posefuse.estimator.rotation.render import Renderer
 from posefuse.sim.bop_writer import SceneWriter, write_dataset_header
 from posefuse.sim.scenes import REALSENSE_1280x720, Scene, SceneSpec, make_scene
 from posefuse.sim.sensor import SensorModel, apply_depth, apply_rgb
@@ -71,7 +71,7 @@ def render_scene_views(
 
 
 def _part_material(catalog: Catalog, obj_id: int):
-    from posefuse.estimator.render import CHROME, METAL
+    from posefuse.estimator.rotation.render import CHROME, METAL
 
     # Screws are chromed in ROBI; the other parts are bare machined metal.
     return CHROME if "screw" in catalog[obj_id].name else METAL

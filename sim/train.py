@@ -36,10 +36,10 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.metrics import score_frontend
+from posefuse.estimator.core.objects import load_catalog
 from posefuse.estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
-from posefuse.estimator.objects import load_catalog
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.frontend_metrics import score_frontend
 from posefuse.sim.scenes import REALSENSE_1280x720
 from posefuse.sim.train_data import (
     RenderSpec,

@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from posefuse.estimator.objects import Catalog, load_catalog
-from posefuse.estimator.render import CHROME, METAL, Renderer
+from posefuse.estimator.core.objects import Catalog, load_catalog
+from posefuse.estimator.rotation.render import CHROME, METAL, Renderer
 from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
 from posefuse.sim.sensor import SensorModel, apply_rgb
 from posefuse.sim.synth import BIN_ID, scene_seed

@@ -8,8 +8,8 @@ import tempfile
 import numpy as np
 import pytest
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.objects import load_catalog
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import load_catalog
 from posefuse.service.resources import DEFAULT_CATALOG
 from posefuse.sim.scenes import SceneSpec
 from posefuse.sim.synth import SynthConfig, generate_dataset
@@ -47,7 +47,7 @@ def small_dataset_root(tmp_path_factory, robi_catalog):
 @pytest.fixture(scope="session")
 def default_banks(robi_catalog, tmp_path_factory):
     """Template banks of the committed catalog at the default parameters (~6 s to build)."""
-    from posefuse.estimator.templates import build_template_banks
+    from posefuse.estimator.rotation.templates import build_template_banks
 
     # the session's POSEFUSE_CACHE, so commands run by the tests find them too
     return build_template_banks([robi_catalog[k] for k in robi_catalog])

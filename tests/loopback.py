@@ -221,6 +221,6 @@ class FakeCamera:
 def _camera():
     import numpy as np
 
-    from posefuse.estimator.camera import Camera
+    from posefuse.estimator.core.camera import Camera
 
     return Camera(np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]]), 1280, 720)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import SMALL_CAMERA
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
 from posefuse.estimator.tracker import CONFIRMED, MultiViewEstimator
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 from posefuse.sim.active import (
     ActiveConfig,
     RecordedScene,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.association import (
+from posefuse.estimator.translation.association import (
     GATED,
     AssociationConfig,
     TrackView,
@@ -15,7 +15,7 @@ from posefuse.estimator.association import (
     cost_matrix,
     innovation_cost,
 )
-from posefuse.estimator.translation import MIN_DEPTH, CenterObservations
+from posefuse.estimator.translation.gaussian import MIN_DEPTH, CenterObservations
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 580.0, 240.0], [0.0, 0.0, 1.0]])
 EMPTY = CenterObservations.empty()

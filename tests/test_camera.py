@@ -4,7 +4,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
 
 K = np.array([[924.0, 0.0, 644.0], [0.0, 921.0, 361.0], [0.0, 0.0, 1.0]])
 DIST = np.array([0.08, -0.15, 0.001, -0.0008, 0.05])

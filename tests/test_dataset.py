@@ -6,8 +6,8 @@ import shutil
 import numpy as np
 import pytest
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.errors import DatasetError
+from posefuse.estimator.core.errors import DatasetError
+from posefuse.evaluation.dataset import load_dataset
 
 
 def test_views_and_poses(small_dataset_root):

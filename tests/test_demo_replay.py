@@ -7,8 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posefuse.estimator.objects import load_catalog
+from posefuse.estimator.core.objects import load_catalog
 from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+from posefuse.evaluation.eval_points import eval_points
+from posefuse.evaluation.pose_error import eval_symmetries
 from posefuse.service.foxglove import FoxgloveMirror
 from posefuse.service.recording import Recorder, read_messages
 from posefuse.service.replay import replay_offline, write_estimates_json
@@ -88,7 +90,7 @@ def _score(segments: list[list[dict]]) -> tuple[int, int, float]:
     its class, greedy by confidence, one-to-one."""
     from scipy.spatial.transform import Rotation
 
-    from posefuse.estimator import pose_error
+    from posefuse.evaluation import pose_error
 
     catalog = load_catalog(DEFAULT_CATALOG)
     truth = _truth()
@@ -105,7 +107,7 @@ def _score(segments: list[list[dict]]) -> tuple[int, int, float]:
             T[:3, :3] = Rotation.from_quat(e["q"]).as_matrix()
             T[:3, 3] = e["t"]
             errors = {
-                k: pose_error.add_sym(T, parts[k][1], model.eval_points, model.eval_symmetries)
+                k: pose_error.add_sym(T, parts[k][1], eval_points(model), eval_symmetries(model))
                 for k in free
                 if parts[k][0] == e["class_id"]
             }

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.fates import FATES, TrackPose, fate_table, instance_fates
+from posefuse.evaluation.fates import FATES, TrackPose, fate_table, instance_fates
 
 SCREW = 2  # continuous symmetry about z
 

@@ -16,7 +16,7 @@ from loopback import (
 )
 
 from posefuse.clients.camera import InfoServer, scene_messages
-from posefuse.estimator.dataset import load_dataset
+from posefuse.evaluation.dataset import load_dataset
 
 RSS_BOUND_MB = 1024
 

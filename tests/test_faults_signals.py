@@ -11,7 +11,7 @@ from loopback import ServeProcess, wait_until, zenoh_peer
 from test_faults_restart import _put_all
 
 from posefuse.clients.camera import InfoServer, scene_messages
-from posefuse.estimator.dataset import load_dataset
+from posefuse.evaluation.dataset import load_dataset
 
 CELL = "stops"
 ENV = {"POSEFUSE_STATE_INTERVAL_S": "3600"}

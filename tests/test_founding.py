@@ -5,18 +5,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.founding import (
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.tracker import Frame, MultiViewEstimator
+from posefuse.estimator.translation.founding import (
     FoundingConfig,
     HeldDetection,
     choose_pairs,
     pair_residual_lower_bounds,
     triangulate_pair,
 )
-from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
-from posefuse.estimator.splitting import SplitConfig, outlier_views
-from posefuse.estimator.tracker import Frame, MultiViewEstimator
-from posefuse.estimator.translation import CenterObservations, estimate_translation
+from posefuse.estimator.translation.gaussian import CenterObservations, estimate_translation
+from posefuse.estimator.translation.merging import MergeCandidate, MergeConfig, merge_pairs
+from posefuse.estimator.translation.splitting import SplitConfig, outlier_views
 from posefuse.sim.scenes import REALSENSE_1280x720
 
 K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])

@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.tracker import ObjectEstimate
 from posefuse.service.codec import (
     encode_camera_info,

@@ -10,8 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.estimator.frontend.network import ModelError, NetworkFrontend, load_card
 from posefuse.estimator.frontend.voting import (
     VotingConfig,
@@ -19,6 +18,7 @@ from posefuse.estimator.frontend.voting import (
     _percentile_90,
     vote_instances,
 )
+from posefuse.evaluation.dataset import load_dataset
 from posefuse.service.resources import DEFAULT_MODEL
 
 
@@ -204,7 +204,7 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
     """bench.frontend_misses against score_frontend, which counts the same parts on its own:
     every part more than 75% visible gets exactly one fate, and "found" is the score's recall."""
     from posefuse.bench.frontend_misses import FATES, view_fates
-    from posefuse.estimator.frontend.metrics import score_frontend
+    from posefuse.evaluation.frontend_metrics import score_frontend
 
     dataset = load_dataset(full_res_dataset)
     frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)

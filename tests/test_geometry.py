@@ -1,4 +1,4 @@
-"""Property tests for estimator.geometry: group identities, stability near 0 and pi, analytic
+"""Property tests for estimator.core.geometry: group identities, stability near 0 and pi, analytic
 Jacobians against central differences, batch shapes and input validation."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator import geometry as g
+from posefuse.estimator.core import geometry as g
 
 PI = np.pi
 FAST = settings(deadline=None, max_examples=60)

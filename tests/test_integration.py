@@ -17,8 +17,10 @@ import numpy as np
 from loopback import free_port, get_json, wait_until
 
 from posefuse.clients.camera import scene_messages
-from posefuse.estimator.dataset import load_dataset
 from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.eval_points import eval_points
+from posefuse.evaluation.pose_error import eval_symmetries
 from posefuse.service.codec import estimate_to_dict
 from posefuse.service.resources import DEFAULT_MODEL
 from posefuse.service.worker import EstimatorWorker
@@ -59,7 +61,7 @@ def _assert_found_where_the_parts_are(objects, dataset):
     part of their class, and some are right to ADD-sym < 0.1 d (the learned front end's floor)."""
     from scipy.spatial.transform import Rotation
 
-    from posefuse.estimator import pose_error
+    from posefuse.evaluation import pose_error
 
     scene = dataset.scene(0)
     truth = [(g.obj_id, v.T_world_cam @ g.T_cam_obj) for v in scene.views() for g in v.gts]
@@ -77,7 +79,7 @@ def _assert_found_where_the_parts_are(objects, dataset):
         gap = min(np.linalg.norm(T[:3, 3] - Tg[:3, 3]) for Tg in same)
         near += gap < 0.1 * model.diameter
         err = min(
-            pose_error.add_sym(T, Tg, model.eval_points, model.eval_symmetries) for Tg in same
+            pose_error.add_sym(T, Tg, eval_points(model), eval_symmetries(model)) for Tg in same
         )
         right += err < 0.1 * model.diameter
     assert near >= 0.5 * len(confirmed) and right >= 1, (near, right, len(confirmed))

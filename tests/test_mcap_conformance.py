@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from loopback import wait_until
 
-from posefuse.estimator.objects import load_catalog
+from posefuse.estimator.core.objects import load_catalog
 from posefuse.estimator.tracker import MultiViewEstimator, ObjectEstimate
 from posefuse.service.codec import encode_camera_pose, encode_estimate
 from posefuse.service.foxglove import FoxgloveMirror

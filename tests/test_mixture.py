@@ -5,8 +5,9 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.geometry import rotation_angle, so3_exp
-from posefuse.estimator.mixture import (
+from posefuse.estimator.core.geometry import rotation_angle, so3_exp
+from posefuse.estimator.core.objects import make_model
+from posefuse.estimator.rotation.mixture import (
     MixtureConfig,
     RotationMixture,
     _axis_angle_optimum,
@@ -14,7 +15,7 @@ from posefuse.estimator.mixture import (
     closest_equivalents,
     discrete_selection,
 )
-from posefuse.estimator.objects import make_model
+from posefuse.evaluation.eval_points import eval_points
 
 DEG = np.pi / 180
 
@@ -40,7 +41,7 @@ def test_closest_equivalent_undoes_any_symmetry(models, name):
     force over the group, continuous axes at 0.25 deg)."""
     model = models[name]
     mix = RotationMixture.for_model(model)
-    pts = model.eval_points[:: max(len(model.eval_points) // 300, 1)]
+    pts = eval_points(model)[:: max(len(eval_points(model)) // 300, 1)]
     group = model.symmetry_transforms(np.deg2rad(0.25))[:, :3, :3]
     rng = np.random.default_rng(0)
     for seed in range(20):

@@ -5,8 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.geometry import random_rotations, so3_exp
-from posefuse.estimator.mixture import closest_equivalent
+from posefuse.estimator.core.geometry import random_rotations, so3_exp
 from posefuse.estimator.nbv import (
     BinRegion,
     CandidateView,
@@ -19,10 +18,11 @@ from posefuse.estimator.nbv import (
     score_candidates,
     tracks_for_nbv,
 )
-from posefuse.estimator.render import DirectionalLight, Lighting, Renderer
-from posefuse.estimator.rotation import RotationMatcher, crop_roi, ray_correction
-from posefuse.estimator.templates import TEMPLATE_LIGHTS_CAM, TEMPLATE_MATERIAL
-from posefuse.estimator.translation import prior_from_first_view
+from posefuse.estimator.rotation.matching import RotationMatcher, crop_roi, ray_correction
+from posefuse.estimator.rotation.mixture import closest_equivalent
+from posefuse.estimator.rotation.render import DirectionalLight, Lighting, Renderer
+from posefuse.estimator.rotation.templates import TEMPLATE_LIGHTS_CAM, TEMPLATE_MATERIAL
+from posefuse.estimator.translation.gaussian import prior_from_first_view
 from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 NONE = np.zeros((0, 3, 3))

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from conftest import extra_shared
 
-from posefuse.estimator.objects import load_catalog, load_mesh, mesh_diameter
-from posefuse.estimator.symmetry import detect_symmetries
+from posefuse.estimator.core.objects import load_catalog, load_mesh, mesh_diameter
+from posefuse.estimator.core.symmetry import detect_symmetries
 from posefuse.service.resources import DEFAULT_CATALOG
 from posefuse.sim.catalog import robi_like_catalog
 

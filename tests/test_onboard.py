@@ -16,6 +16,8 @@ from loopback import ServeProcess, free_port, wait_until
 from scipy.spatial.transform import Rotation
 
 from posefuse.cli.main import main
+from posefuse.evaluation.eval_points import eval_points
+from posefuse.evaluation.pose_error import eval_symmetries
 
 # training steps of the onboarding tests: a fixed amount of work, so the result does not depend
 # on the machine's speed; few, since onboarding fine-tunes from the shipped checkpoint
@@ -114,8 +116,8 @@ def _onboard_and_serve(
     asserts every stage and file, that the served part is found where it truly is (an estimate
     within ``found_within_d`` diameters of a true part) and, unless None, posed near it (ADD-sym
     below ``add_sym_below_d`` diameters)."""
-    from posefuse.estimator import pose_error
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation import pose_error
+    from posefuse.evaluation.dataset import load_dataset
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # training renders
     name = mesh.stem
@@ -173,7 +175,7 @@ def _onboard_and_serve(
         T[:3, 3] = o["t"]
         best = min(best, min(np.linalg.norm(T[:3, 3] - Tg[:3, 3]) for Tg in truth))
         scored = min(
-            pose_error.add_sym(T, Tg, model.eval_points, model.eval_symmetries) for Tg in truth
+            pose_error.add_sym(T, Tg, eval_points(model), eval_symmetries(model)) for Tg in truth
         )
         o["add_sym_d"] = scored / model.diameter
     # a part found where one truly is, and posed near it

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from posefuse.estimator.dataset import load_dataset
-from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 
 
 def test_detections_follow_the_ground_truth(small_dataset_root):

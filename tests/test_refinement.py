@@ -1,6 +1,7 @@
-"""Refinement of a track's full pose over all its views (estimator.refinement): it converges back
-from a 10 degree / 0.05 d perturbation on renders, its gradient is the cost's derivative, it
-refuses what it may not do, and a warm start saves work without changing where it ends."""
+"""Refinement of a track's full pose over all its views (estimator.verification.refinement): it
+converges back from a 10 degree / 0.05 d perturbation on renders, its gradient is the cost's
+derivative, it refuses what it may not do, and a warm start saves work without changing where it
+ends."""
 
 from __future__ import annotations
 
@@ -10,11 +11,16 @@ import numpy as np
 import pytest
 from test_verification import CONFIG, _edges, _tube
 
-from posefuse.estimator.edges import EdgeView, ModelEdges
-from posefuse.estimator.geometry import invert, so3_exp
-from posefuse.estimator.mixture import closest_equivalent
+from posefuse.estimator.core.geometry import invert, so3_exp
 from posefuse.estimator.nbv import look_at
-from posefuse.estimator.refinement import RefineConfig, _linearize, _ViewStack, refine_pose
+from posefuse.estimator.rotation.mixture import closest_equivalent
+from posefuse.estimator.verification.edges import EdgeView, ModelEdges
+from posefuse.estimator.verification.refinement import (
+    RefineConfig,
+    _linearize,
+    _ViewStack,
+    refine_pose,
+)
 
 _TUBE: dict = {}
 
@@ -87,7 +93,7 @@ def test_the_published_covariance_adds_its_floor_and_covers_the_error(robi_catal
     inside the published covariance's 99% ellipsoid (chi2 with 6 degrees of freedom). The floor
     is added to the inverse information and changes nothing else: without it the pose, cost
     and steps are the same to the bit, and the covariance is the floored one less the floor."""
-    from posefuse.estimator.geometry import so3_log
+    from posefuse.estimator.core.geometry import so3_log
 
     model, T_world_obj, views, edges = _tube_once(robi_catalog)
     R_true, t_true = T_world_obj[:3, :3], T_world_obj[:3, 3]
@@ -235,7 +241,7 @@ def _tube_refinement(robi_catalog, config, degrees=6.0, **kwargs):
 
 
 def test_a_refinement_that_moves_too_far_is_refused_and_keeps_the_priors(robi_catalog):
-    from posefuse.estimator.geometry import rotation_angle
+    from posefuse.estimator.core.geometry import rotation_angle
 
     # allowed: it comes back by about 6 degrees
     model, (R_true, _), (R0, t0), ok = _tube_refinement(robi_catalog, RefineConfig())
@@ -313,7 +319,7 @@ def test_a_refinement_past_what_would_be_accepted_stops_there_with_the_same_answ
 def test_a_warm_start_ends_where_a_cold_one_does_in_fewer_steps_and_a_bad_one_is_ignored(
     robi_catalog,
 ):
-    from posefuse.estimator.geometry import rotation_angle
+    from posefuse.estimator.core.geometry import rotation_angle
 
     _, (R_true, t_true), _, cold = _tube_refinement(robi_catalog, RefineConfig())
     *_, warm = _tube_refinement(
@@ -338,7 +344,7 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
     fully in the cost."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.edges import pose_edges
+    from posefuse.estimator.verification.edges import pose_edges
 
     rng = np.random.default_rng(5)
     P, bins, truncate = 50, 8, 10.0
@@ -467,14 +473,14 @@ def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance()
 def test_a_sample_stride_below_one_is_refused():
     with pytest.raises(ValueError, match="refinement config"):
         RefineConfig(sample_stride=0)
-    from posefuse.estimator.verification import VerificationConfig
+    from posefuse.estimator.verification.verify import VerificationConfig
 
     with pytest.raises(ValueError, match="verification config"):
         VerificationConfig(sample_stride=0)
 
 
 def test_accepts_translation_bounds_the_move_by_the_diameter_and_the_prior():
-    from posefuse.estimator.refinement import accepts_translation
+    from posefuse.estimator.verification.refinement import accepts_translation
 
     d, config = 0.1, RefineConfig()  # accept_frac 0.1 d, up to 0.3 d where the prior allows
     x = np.array([1.0, 0.0, 0.0])

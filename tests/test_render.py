@@ -3,9 +3,9 @@
 import numpy as np
 import trimesh
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.geometry import invert
-from posefuse.estimator.render import BACKGROUND, MATTE, Renderer
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import invert
+from posefuse.estimator.rotation.render import BACKGROUND, MATTE, Renderer
 
 CAMERA = Camera(np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]]), 320, 240)
 

@@ -13,7 +13,7 @@ import pytest
 from loopback import FakeCamera, ServeProcess, free_port, wait_until, zenoh_peer
 
 from posefuse.cli.main import main
-from posefuse.estimator.dataset import load_dataset
+from posefuse.evaluation.dataset import load_dataset
 
 SECOND = 1_000_000_000
 

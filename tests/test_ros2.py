@@ -14,8 +14,8 @@ from rosbags.typesys.stores.ros2_jazzy import std_msgs__msg__Header as Header
 from scipy.spatial.transform import Rotation
 
 from posefuse.clients.camera import scene_messages
-from posefuse.estimator.dataset import load_dataset
 from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.evaluation.dataset import load_dataset
 from posefuse.service import ros2
 from posefuse.service.daemon import Daemon
 from posefuse.service.settings import Settings

@@ -5,10 +5,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.geometry import random_rotations, rotation_angle
-from posefuse.estimator.render import DirectionalLight, Lighting, Renderer
-from posefuse.estimator.rotation import RotationMatcher, _best_first, crop_roi, ray_correction
-from posefuse.estimator.templates import (
+from posefuse.estimator.core.geometry import random_rotations, rotation_angle
+from posefuse.estimator.rotation.matching import (
+    RotationMatcher,
+    _best_first,
+    crop_roi,
+    ray_correction,
+)
+from posefuse.estimator.rotation.render import DirectionalLight, Lighting, Renderer
+from posefuse.estimator.rotation.templates import (
     TEMPLATE_LIGHTS_CAM,
     TEMPLATE_MATERIAL,
     TemplateConfig,
@@ -98,7 +103,7 @@ def test_matching_recovers_the_rotation_off_axis(tube, default_banks):
 
 
 def test_top_k_hypotheses_are_distinct(tube, tube_bank):
-    from posefuse.estimator.rotation import RotationConfig
+    from posefuse.estimator.rotation.matching import RotationConfig
 
     matcher = RotationMatcher(tube_bank, RotationConfig(top_k=3, nms_deg=15, min_confidence=0))
     t = np.array([0.0, 0.0, 0.7])

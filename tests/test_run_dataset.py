@@ -64,11 +64,11 @@ def test_run_dataset_refuses_bad_settings(small_dataset_root, tmp_path, capsys):
 def test_both_steps_end_to_end_and_deterministic(small_dataset_root, default_banks):
     import numpy as np
 
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import evaluate
-    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
-    from posefuse.estimator.run_dataset import run_dataset
     from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
+    from posefuse.evaluation.run_dataset import run_dataset
+    from posefuse.evaluation.scores import evaluate
 
     ds = load_dataset(small_dataset_root)
 
@@ -98,8 +98,8 @@ def test_pose_nees_charges_the_error_under_the_covariance_and_not_the_symmetry()
     NEES of (e_t, dphi) under the covariance's blocks: the symmetry costs nothing."""
     import numpy as np
 
-    from posefuse.estimator.geometry import so3_exp
-    from posefuse.estimator.metrics import pose_nees
+    from posefuse.estimator.core.geometry import so3_exp
+    from posefuse.evaluation.tracking import pose_nees
 
     rng = np.random.default_rng(4)
     flip = so3_exp(np.array([0.0, 0.0, np.pi]))  # 180 degrees about z
@@ -139,8 +139,8 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.evaluation import PoseResult, evaluate, ground_truth_results
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.scores import PoseResult, evaluate, ground_truth_results
 
     ds = load_dataset(four_view_dataset)
     rng = np.random.default_rng(7)
@@ -172,8 +172,8 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
 
 def test_verification_settings_from_the_command_line_replace_only_what_they_name():
     from posefuse.cli.run import tracker_config, verification_settings
-    from posefuse.estimator.errors import PosefuseError
-    from posefuse.estimator.verification import VerificationConfig
+    from posefuse.estimator.core.errors import PosefuseError
+    from posefuse.estimator.verification.verify import VerificationConfig
 
     settings = verification_settings(["mask_weight=2.5", "max_views=3"])
     assert settings == {"mask_weight": 2.5, "max_views": 3}

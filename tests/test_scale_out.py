@@ -9,7 +9,7 @@ import sys
 
 from loopback import ServeProcess, free_port, get_json, start_router, wait_until
 
-from posefuse.estimator.dataset import load_dataset
+from posefuse.evaluation.dataset import load_dataset
 
 
 def _publish(dataset, cell: str, endpoint: str, t0_ns: int = 1_000_000_000_000):

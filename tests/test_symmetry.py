@@ -5,8 +5,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.objects import mesh_diameter
-from posefuse.estimator.symmetry import (
+from posefuse.estimator.core.objects import mesh_diameter
+from posefuse.estimator.core.symmetry import (
     ContinuousSymmetry,
     describe_symmetries,
     detect_symmetries,
@@ -214,7 +214,7 @@ def test_a_near_miss_is_flagged_not_claimed():
 
 
 def test_a_person_overrides_detection_with_a_spec():
-    from posefuse.estimator.symmetry import symmetry_from_spec
+    from posefuse.estimator.core.symmetry import symmetry_from_spec
 
     mesh = _wheel(5)
     d = mesh_diameter(mesh)
@@ -239,7 +239,7 @@ def _rotation_axis_of(T):
 
 @pytest.mark.parametrize("name, index", [("x", 0), ("y", 1), ("z", 2)])
 def test_a_spec_turns_about_the_object_axis_it_names(name, index):
-    from posefuse.estimator.symmetry import symmetry_from_spec
+    from posefuse.estimator.core.symmetry import symmetry_from_spec
 
     box = trimesh.creation.box([0.10, 0.06, 0.03])
     disc, cont = symmetry_from_spec(f"2:{name}", box, mesh_diameter(box))
@@ -260,7 +260,7 @@ def test_a_spec_turns_about_the_object_axis_it_names(name, index):
 )
 def test_main_without_detection_is_the_principal_axis_that_stands_apart(extents, main):
     """A rod's long axis, a plate's normal: the moment farthest from the other two."""
-    from posefuse.estimator.symmetry import symmetry_from_spec
+    from posefuse.estimator.core.symmetry import symmetry_from_spec
 
     box = trimesh.creation.box(extents)
     _, cont = symmetry_from_spec("continuous", box, mesh_diameter(box))
@@ -270,7 +270,7 @@ def test_main_without_detection_is_the_principal_axis_that_stands_apart(extents,
 
 
 def test_main_is_the_detected_axis_else_the_first_alternative():
-    from posefuse.estimator.symmetry import SymmetryAxis, SymmetryReport, symmetry_from_spec
+    from posefuse.estimator.core.symmetry import SymmetryAxis, SymmetryReport, symmetry_from_spec
 
     box = trimesh.creation.box([0.10, 0.02, 0.03])  # principal axis x
     d = mesh_diameter(box)
@@ -284,7 +284,7 @@ def test_main_is_the_detected_axis_else_the_first_alternative():
 
 
 def test_a_continuous_spec_passes_through_the_surface_centroid():
-    from posefuse.estimator.symmetry import symmetry_from_spec
+    from posefuse.estimator.core.symmetry import symmetry_from_spec
 
     offset = np.array([0.01, -0.02, 0.03])
     box = trimesh.creation.box([0.10, 0.02, 0.03])
@@ -296,7 +296,7 @@ def test_a_continuous_spec_passes_through_the_surface_centroid():
 
 
 def test_a_spec_accepts_orders_from_2_to_max_order():
-    from posefuse.estimator.symmetry import MAX_ORDER, symmetry_from_spec
+    from posefuse.estimator.core.symmetry import MAX_ORDER, symmetry_from_spec
 
     box = trimesh.creation.box([0.10, 0.06, 0.03])
     d = mesh_diameter(box)
@@ -313,7 +313,7 @@ def _turn(axis, angle):
 
 
 def test_summaries_name_each_axis_by_its_largest_order():
-    from posefuse.estimator.symmetry import _group_closure
+    from posefuse.estimator.core.symmetry import _group_closure
 
     # the identity in the list is skipped, not the end of it
     assert describe_symmetries(np.stack([np.eye(4), _turn([0, 0, 1], np.pi)]), []) == (
@@ -330,7 +330,7 @@ def test_summaries_name_each_axis_by_its_largest_order():
     assert flips == (
         "continuous about z; 2-fold about x; with the flips about every axis perpendicular to it"
     )
-    from posefuse.estimator.symmetry import SymmetryAxis
+    from posefuse.estimator.core.symmetry import SymmetryAxis
 
     assert SymmetryAxis((0.6, 0.8, 0.0), 3, 0.0).name() == "3-fold about [0.600, 0.800, 0.000]"
 
@@ -349,7 +349,7 @@ def test_a_continuous_axis_is_discretised_in_equal_steps_around_the_whole_turn()
 
 @pytest.mark.parametrize("normal", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
 def test_the_flip_sweep_finds_the_best_axis_perpendicular_to_any_normal(normal):
-    from posefuse.estimator.symmetry import _sweep_flip
+    from posefuse.estimator.core.symmetry import _sweep_flip
 
     normal = np.array(normal)
     # the true flip axis: perpendicular to the normal, at an angle no coarse grid starts on

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.objects import Catalog, make_model
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.objects import Catalog, make_model
 from posefuse.sim.scenes import SceneSpec, make_scene
 from posefuse.sim.synth import SynthConfig, generate_dataset
 
@@ -146,7 +146,7 @@ def test_robi_profile_piles_one_part_type_and_sweeps_over_the_bin(robi_catalog, 
     import dataclasses
 
     from posefuse.cli.main import main
-    from posefuse.estimator.dataset import load_dataset
+    from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.scenes import PROFILES
 
     spec = PROFILES["robi"]

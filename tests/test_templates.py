@@ -4,8 +4,8 @@ built in parallel equal banks built one by one."""
 import numpy as np
 import pytest
 
-from posefuse.estimator.render import Renderer
-from posefuse.estimator.templates import (
+from posefuse.estimator.rotation.render import Renderer
+from posefuse.estimator.rotation.templates import (
     TEMPLATE_MATERIAL,
     TemplateConfig,
     _render_template_view,

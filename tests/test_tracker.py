@@ -8,8 +8,8 @@ import pytest
 
 from posefuse.bench.translation_sequences import run_sequences
 from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.metrics import update_members
 from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.evaluation.tracking import update_members
 from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec
 from posefuse.sim.sequences import make_sequence
 

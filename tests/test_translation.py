@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.translation import (
+from posefuse.estimator.translation.gaussian import (
     CenterObservations,
     estimate_translation,
     predict,
@@ -131,7 +131,7 @@ def test_prior_refuses_bad_sizes():
 
 
 def test_folding_old_views_into_the_prior_keeps_the_estimate():
-    from posefuse.estimator.translation import marginalize_oldest
+    from posefuse.estimator.translation.gaussian import marginalize_oldest
 
     t_true = np.array([0.02, -0.01, 0.03])
     T_wcs = np.concatenate([_views(8, s) for s in range(5)])  # 40 views
@@ -168,7 +168,7 @@ def test_bbox_diagonal_ratio_of_a_sphere_and_of_a_rod():
     """A sphere's projection is a disk of its diameter d whatever the turn: its box has the
     diagonal d sqrt(2). A rod of length d seen at angle theta to its axis spans d sin(theta):
     with cos(theta) uniform on [-1, 1] the median of |sin(theta)| is sqrt(3) / 2."""
-    from posefuse.estimator.translation import bbox_diagonal_ratio
+    from posefuse.estimator.translation.gaussian import bbox_diagonal_ratio
 
     rng = np.random.default_rng(0)
     sphere = rng.normal(size=(4000, 3))
@@ -216,7 +216,7 @@ def test_select_and_concat_keep_every_field_of_each_view_together():
 def test_robust_cost_is_the_prior_plus_huber_on_each_view():
     """Against a second implementation: an inlier view costs s, an outlier 2 k sqrt(s) - k^2,
     a view with the part behind the camera 1e6, plus (t - m)^T P^-1 (t - m)."""
-    from posefuse.estimator.translation import HUBER_K, robust_cost
+    from posefuse.estimator.translation.gaussian import HUBER_K, robust_cost
 
     t = np.array([0.01, -0.02, 0.0])
     T_wcs = _views(3, 5)
@@ -250,7 +250,7 @@ def _info_form(P, m, J, W, r, t_hat):
 
 
 def test_marginalize_oldest_folds_exactly_the_first_view_into_the_prior():
-    from posefuse.estimator.translation import HUBER_K, marginalize_oldest
+    from posefuse.estimator.translation.gaussian import HUBER_K, marginalize_oldest
 
     t = np.array([0.02, 0.01, 0.0])
     T_wcs = _views(4, 8)
@@ -292,7 +292,7 @@ def test_marginalize_oldest_folds_exactly_the_first_view_into_the_prior():
 
 
 def test_the_estimate_reports_its_views_residuals_and_cost_at_the_solution():
-    from posefuse.estimator.translation import robust_cost
+    from posefuse.estimator.translation.gaussian import robust_cost
 
     t_true = np.array([0.02, -0.01, 0.03])
     T_wcs = _views(5, 21)
@@ -331,7 +331,7 @@ def test_a_view_behind_the_camera_gets_no_weight():
     assert est.weights[-1] == 0.0 and np.all(est.weights[:-1] > 0)
     np.testing.assert_allclose(est.t_world_obj, good.t_world_obj, atol=1e-9)
     # at exactly MIN_DEPTH a view gives nothing either (``z > MIN_DEPTH``)
-    from posefuse.estimator.translation import MIN_DEPTH
+    from posefuse.estimator.translation.gaussian import MIN_DEPTH
 
     at_edge = np.eye(4)
     at_edge[:3, 3] = [0.0, 0.0, MIN_DEPTH]  # the origin at depth MIN_DEPTH
@@ -342,7 +342,7 @@ def test_a_view_behind_the_camera_gets_no_weight():
 
 
 def test_huber_weights_are_one_inside_and_k_over_root_outside():
-    from posefuse.estimator.translation import _huber_weights
+    from posefuse.estimator.translation.gaussian import _huber_weights
 
     s = np.array([0.0, 0.25, 0.5, 4.0, 9.0])
     np.testing.assert_allclose(_huber_weights(s, 2.0), [1, 1, 1, 1, 2 / 3])

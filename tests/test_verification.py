@@ -1,7 +1,8 @@
-"""Verification across views and refinement of the full pose, on renders (estimator.edges,
-estimator.verification, estimator.refinement): a screw flipped end over end is told apart from
-the truth by a second view but not by the first, refinement converges back from a 10 degree /
-0.05 d perturbation, and the symmetric equivalents of the truth score alike."""
+"""Verification across views and refinement of the full pose, on renders
+(estimator.verification.edges, estimator.verification.verify, estimator.verification.refinement): a
+screw flipped end over end is told apart from the truth by a second view but not by the first,
+refinement converges back from a 10 degree / 0.05 d perturbation, and the symmetric equivalents of
+the truth score alike."""
 
 from __future__ import annotations
 
@@ -14,19 +15,19 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.edges import (
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import invert, make_transform, rotation_angle, so3_exp
+from posefuse.estimator.nbv import look_at
+from posefuse.estimator.rotation.mixture import closest_equivalent
+from posefuse.estimator.rotation.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Renderer
+from posefuse.estimator.verification.edges import (
     EdgeConfig,
     edge_view,
     model_edges,
     pose_edges,
     silhouette_misses,
 )
-from posefuse.estimator.geometry import invert, make_transform, rotation_angle, so3_exp
-from posefuse.estimator.mixture import closest_equivalent
-from posefuse.estimator.nbv import look_at
-from posefuse.estimator.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Renderer
-from posefuse.estimator.verification import (
+from posefuse.estimator.verification.verify import (
     ScoreCache,
     VerificationConfig,
     agrees,
@@ -290,8 +291,8 @@ def test_verify_without_views_says_nothing(robi_catalog):
 
 
 def _run_scene(dataset, scene_id, config=None, banks=None):
-    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
     from posefuse.estimator.tracker import Frame, MultiViewEstimator
+    from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 
     front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
     estimator = MultiViewEstimator(dataset.catalog, config, banks=banks)
@@ -308,8 +309,8 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
 ):
     import dataclasses
 
-    from posefuse.estimator.dataset import load_dataset
     from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(small_dataset_root)
     few = TrackerConfig(verification=dataclasses.replace(VerificationConfig(), max_views=2))
@@ -355,9 +356,9 @@ def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
     """A camera at rest (the same pose, a later stamp) adds no edge maps and no verification;
     the verdict and the published pose stay as they were."""
     from posefuse.estimator import tracker as tracker_module
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.frontend.oracle import OracleConfig, OracleFrontend
     from posefuse.estimator.tracker import Frame
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 
     dataset = load_dataset(small_dataset_root)
     scene_id = dataset.scene_ids[0]
@@ -393,8 +394,8 @@ def test_a_settled_track_is_verified_again_only_when_a_new_view_disagrees(
     import dataclasses
 
     from posefuse.estimator import tracker as tracker_module
-    from posefuse.estimator.dataset import load_dataset
     from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(small_dataset_root)
     scene_id = dataset.scene_ids[0]
@@ -446,9 +447,9 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
     translation moved past settled_translation_frac, or reuse switched off refines again."""
     import dataclasses
 
-    from posefuse.estimator.dataset import load_dataset
-    from posefuse.estimator.refinement import accepts_translation
     from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.verification.refinement import accepts_translation
+    from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(small_dataset_root)
     estimator = _run_scene(dataset, dataset.scene_ids[0], None, default_banks)
@@ -500,7 +501,7 @@ def test_a_viewpoint_is_new_when_it_turns_or_moves_past_the_bounds(angle, ratio,
     """Two cameras looking at a part: the second is new exactly when its direction from the part
     turned by the bound or more, or its distance changed by the bound or more; rolling a camera
     about its own axis changes nothing."""
-    from posefuse.estimator.verification import is_new_viewpoint
+    from posefuse.estimator.verification.verify import is_new_viewpoint
 
     t_obj = np.array([0.1, -0.05, 0.02])
     eye0 = t_obj + np.array([0.0, 0.0, 0.7])
@@ -611,7 +612,7 @@ def _random_poses(model, n, seed):
 
 
 def test_only_the_samples_that_show_are_projected_as_all_would_be(robi_catalog):
-    from posefuse.estimator.edges import project_edges, project_shown
+    from posefuse.estimator.verification.edges import project_edges, project_shown
 
     model = _model(robi_catalog, "eye_bolt")
     edges = _edges(model)
@@ -746,7 +747,7 @@ def test_the_viewpoint_directions_cover_the_sphere_evenly():
     (the table's answer comes from at most that far)."""
     from scipy.spatial import cKDTree
 
-    from posefuse.estimator.edges import fibonacci_sphere
+    from posefuse.estimator.verification.edges import fibonacci_sphere
 
     directions = fibonacci_sphere(4096)
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-12)
@@ -778,7 +779,7 @@ def test_the_occlusion_table_hides_nothing_of_a_convex_part():
 
 
 def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catalog):
-    from posefuse.estimator.edges import OcclusionTable
+    from posefuse.estimator.verification.edges import OcclusionTable
 
     model = _model(robi_catalog, "eye_bolt")
     edges = _edges(model)
@@ -827,7 +828,7 @@ def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catal
 def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
     import cv2
 
-    from posefuse.estimator.edges import _covered
+    from posefuse.estimator.verification.edges import _covered
 
     rng = np.random.default_rng(6)
     H, W, L = 120, 200, 32
@@ -879,7 +880,7 @@ def test_verify_asks_the_heaviest_components_and_reweights_them_by_the_views(rob
 def _dense_scores(edges, views, R_world_obj, t_world_obj, config):
     """score_hypotheses the long way, a reference: every sample of every pose projected and
     read, pose by pose and view by view, each term masked to the samples it counts."""
-    from posefuse.estimator.edges import project_edges, sample_maps
+    from posefuse.estimator.verification.edges import project_edges, sample_maps
 
     ec = config.edges
     cost = np.zeros((len(R_world_obj), len(views)))
@@ -950,7 +951,7 @@ def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
     camera and one away (the contour) or both to it (shown nowhere)."""
     from dataclasses import replace
 
-    from posefuse.estimator.edges import ModelEdges
+    from posefuse.estimator.verification.edges import ModelEdges
 
     ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
@@ -990,7 +991,7 @@ def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
 
 def _flat_view(T_cam_world):
     """An EdgeView whose chamfer maps read 2.5 px everywhere and whose mask map reads 5 px."""
-    from posefuse.estimator.edges import EdgeView
+    from posefuse.estimator.verification.edges import EdgeView
 
     L, ec = CONFIG.edges.roi_size, CONFIG.edges
     K_roi = np.array([[600.0, 0, (L - 1) / 2], [0, 600.0, (L - 1) / 2], [0, 0, 1]])
@@ -1030,7 +1031,7 @@ def _cube_points(side, n):
 
 
 def _turn_vectors(variants):
-    from posefuse.estimator.geometry import so3_log
+    from posefuse.estimator.core.geometry import so3_log
 
     return np.round(np.rad2deg(np.array([so3_log(v) for v in variants])), 3).reshape(-1, 3)
 
@@ -1074,7 +1075,7 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
     """Eight views in which no hypothesis shows an edge: every cost is "no information" (3 with
     the default weights), the views cannot choose, and the weights are the prior's, normalised
     (tempering by the cost above the best one, not by the cost itself, which would underflow)."""
-    from posefuse.estimator.edges import ModelEdges
+    from posefuse.estimator.verification.edges import ModelEdges
 
     ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
@@ -1100,7 +1101,7 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
 def test_the_region_of_interest_is_centred_on_the_part_at_a_fixed_scale():
     """edge_view's RoI intrinsics put the projected origin at the RoI's center and make the
     part's diameter span diameter_px, whatever the camera (skewed, fx != fy, off-center)."""
-    from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
 
     K = np.array([[910.0, 3.0, 655.0], [0.0, 870.0, 350.0], [0.0, 0.0, 1.0]])
     image = np.zeros((720, 1280, 3), np.uint8)
@@ -1122,7 +1123,7 @@ def test_the_region_of_interest_is_centred_on_the_part_at_a_fixed_scale():
 def test_projected_edges_are_where_the_camera_puts_the_points():
     """project_edges against the pinhole model applied point by point (a skewed camera), and the
     projected direction against the difference of two projected points along the edge."""
-    from posefuse.estimator.edges import project_edges
+    from posefuse.estimator.verification.edges import project_edges
 
     rng = np.random.default_rng(9)
     K = np.array([[800.0, 12.0, 300.0], [0.0, 760.0, 260.0], [0.0, 0.0, 1.0]])
@@ -1146,7 +1147,7 @@ def test_projected_edges_are_where_the_camera_puts_the_points():
     "bad", [dict(roi_size=15), dict(bins=1), dict(truncate_px=0.0), dict(truncate_px=-1.0)]
 )
 def test_an_edge_config_that_cannot_work_is_refused(bad):
-    from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
 
     with pytest.raises(ValueError, match="invalid edge config"):
         EdgeConfig(**bad)
@@ -1159,7 +1160,7 @@ def test_the_directional_chamfer_of_a_rectangle():
     horizontal bin reads 3 px, and each bin of orientation further away adds 2.5 px (the
     directional chamfer), up to the truncation; the mask map reads the distance to the mask's
     boundary."""
-    from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
 
     config = EdgeConfig()
     image = np.zeros((200, 200, 3), np.uint8)
@@ -1195,7 +1196,7 @@ def test_the_directional_chamfer_of_a_rectangle():
 def test_edge_maps_see_no_edge_where_the_image_ends():
     """A plain grey image, the part near its corner: the RoI reaches past the image, which
     repeats its border there, so no edge appears (every map reads the truncation)."""
-    from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
 
     config = EdgeConfig()
     image = np.full((120, 160, 3), 128, np.uint8)
@@ -1225,7 +1226,7 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
     neighbouring bytes fall as often as they rise (uint8 differences must not wrap)."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.edges import sample_maps
+    from posefuse.estimator.verification.edges import sample_maps
 
     rng = np.random.default_rng(3)
     maps = rng.integers(0, 256, size=(3, 12, 16), dtype=np.uint8)
@@ -1262,7 +1263,7 @@ def test_sample_maps_reads_its_edges_exactly_and_nothing_past_them():
     a pixel further, or a pixel before the first, reads the truncation with no gradient."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.edges import sample_maps
+    from posefuse.estimator.verification.edges import sample_maps
 
     rng = np.random.default_rng(5)
     maps = rng.integers(0, 256, size=(2, 10, 14), dtype=np.uint8)
@@ -1312,7 +1313,7 @@ def test_model_edges_lie_evenly_along_the_sharp_edges_laid_end_to_end(max_points
     unit direction, its two faces' normals, and the box's right angles marked as creases."""
     import trimesh
 
-    from posefuse.estimator.edges import EdgeConfig, model_edges
+    from posefuse.estimator.verification.edges import EdgeConfig, model_edges
 
     mesh = trimesh.creation.box(extents=(0.1, 0.07, 0.03))
     diameter = 0.123
@@ -1347,7 +1348,7 @@ def test_model_edges_keep_a_fold_of_one_and_a_half_degrees_and_no_flat_one():
     (and not a crease); folded by 0.5 degrees, or flat, they give no samples at all."""
     import trimesh
 
-    from posefuse.estimator.edges import EdgeConfig, model_edges, pose_edges
+    from posefuse.estimator.verification.edges import EdgeConfig, model_edges, pose_edges
 
     def fold(deg):
         a = np.deg2rad(deg)
@@ -1369,7 +1370,7 @@ def test_edge_orientation_bins_follow_a_circle():
     """A bright disc seen 1:1: where the circle's tangent lies at a bin's centre, the edge pixel
     on that ray is in that bin (the gradient's direction from first derivatives in x and y,
     signed: every orientation, not only the axis-aligned ones of a rectangle)."""
-    from posefuse.estimator.edges import EdgeConfig
+    from posefuse.estimator.verification.edges import EdgeConfig
 
     config = EdgeConfig()
     image = np.zeros((200, 200, 3), np.uint8)

@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from posefuse.estimator.errors import PosefuseError
+from posefuse.estimator.core.errors import PosefuseError
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.two_stage import (
     Box,

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.geometry import so3_log
-from posefuse.estimator.mixture import closest_equivalent
+from posefuse.estimator.core.geometry import so3_log
+from posefuse.estimator.rotation.mixture import closest_equivalent
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.translation import CenterObservations
+from posefuse.estimator.translation.gaussian import CenterObservations
 
 
 @dataclass(frozen=True)

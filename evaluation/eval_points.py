@@ -20,15 +20,25 @@ uniform-density set does not). The points are stored with the catalog as
 
 from __future__ import annotations
 
-from pathlib import Path
+import dataclasses
+import weakref
 
 import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from posefuse.estimator.core.objects import (  # noqa: F401  (the catalog's file layout)
+    EVAL_DIR,
+    Catalog,
+    ObjectModel,
+    eval_points_path,
+    read_eval_points,
+    write_eval_points,
+)
+
 EVAL_SPACING = 0.025  # of the diameter
 EVAL_SEED = 0
-EVAL_DIR = "models_eval"
+_DERIVED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # model -> (M, 3)
 
 
 def derive_eval_points(mesh: trimesh.Trimesh, diameter: float) -> np.ndarray:
@@ -53,28 +63,19 @@ def derive_eval_points(mesh: trimesh.Trimesh, diameter: float) -> np.ndarray:
     return vertices[np.sort(keep)]
 
 
-def eval_points_path(models_dir: str | Path, obj_id: int) -> Path:
-    """``models_eval/obj_XXXXXX.ply`` inside a catalog folder."""
-    return Path(models_dir) / EVAL_DIR / f"obj_{obj_id:06d}.ply"
+def eval_points(model: ObjectModel) -> np.ndarray:
+    """(M, 3) metres: the points every pose error of ``model`` is evaluated on, the catalog's
+    stored ``models_eval`` points or else derived (:func:`derive_eval_points`, once per model)."""
+    if model.stored_eval_points is not None:
+        return model.stored_eval_points
+    cached = _DERIVED.get(model)
+    if cached is None:
+        cached = _DERIVED[model] = derive_eval_points(model.mesh, model.diameter)
+    return cached
 
 
-def write_eval_points(path: str | Path, pts_m: np.ndarray) -> Path:
-    """A binary PLY point cloud in millimetres (BOP's unit)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cloud = trimesh.PointCloud(np.asarray(pts_m, dtype=np.float64) * 1000.0)
-    path.write_bytes(trimesh.exchange.ply.export_ply(cloud, encoding="binary"))
-    return path
-
-
-def read_eval_points(path: str | Path) -> np.ndarray:
-    """(N, 3) metres from a PLY written by :func:`write_eval_points` (or any PLY's vertices).
-
-    Raises:
-        ValueError: the file holds no finite 3D points.
-    """
-    loaded = trimesh.load(Path(path), process=False)
-    pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.all(np.isfinite(pts)):
-        raise ValueError("holds no finite 3D points")
-    return pts / 1000.0
+def with_eval_points(models: Catalog | list[ObjectModel]) -> list[ObjectModel]:
+    """The models, each carrying its evaluation points (``stored_eval_points``), so that
+    :func:`posefuse.estimator.core.objects.write_catalog` stores them as ``models_eval``."""
+    items = list(models.values()) if isinstance(models, Catalog) else list(models)
+    return [dataclasses.replace(m, stored_eval_points=eval_points(m)) for m in items]

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from posefuse.estimator.translation import (
+from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
     estimate_translation,

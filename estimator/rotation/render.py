@@ -22,7 +22,7 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from posefuse.estimator.camera import Camera
+from posefuse.estimator.core.camera import Camera
 
 BACKGROUND = -1
 

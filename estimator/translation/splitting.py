@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.translation import TranslationEstimate
+from posefuse.estimator.translation.gaussian import TranslationEstimate
 
 
 @dataclass(frozen=True)

@@ -30,10 +30,10 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.geometry import rotation_angle
-from posefuse.estimator.objects import ObjectModel
-from posefuse.estimator.render import DirectionalLight, Lighting, Material, Renderer
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import rotation_angle
+from posefuse.estimator.core.objects import ObjectModel
+from posefuse.estimator.rotation.render import DirectionalLight, Lighting, Material, Renderer
 
 CACHE_ENV = "POSEFUSE_CACHE"
 CACHE_VERSION = 5  # 3: in-plane turns as image rotations; 4, 5: where they save renders

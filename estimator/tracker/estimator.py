@@ -2,9 +2,9 @@
 
 One call of :meth:`MultiViewEstimator.update` per view, in stamp order. It validates the frame
 (nothing in the state changes if the frame is bad), associates the view's detections with the
-tracks class by class (:mod:`estimator.association`), re-estimates the translation of every
-matched track from all its views (:mod:`estimator.translation`), starts tentative tracks from
-the unmatched detections, and drops tracks that should have been seen but were not.
+tracks class by class (:mod:`estimator.translation.association`), re-estimates the translation of
+every matched track from all its views (:mod:`estimator.translation.gaussian`), starts tentative
+tracks from the unmatched detections, and drops tracks that should have been seen but were not.
 
 Documented skips (counted in ``skipped`` of the last update, never an exception):
 
@@ -24,16 +24,26 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator.association import (
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import rotation_angle
+from posefuse.estimator.core.objects import Catalog
+from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.rotation.matching import RotationConfig, RotationMatcher
+from posefuse.estimator.rotation.mixture import MixtureConfig, RotationMixture
+from posefuse.estimator.rotation.templates import (
+    TemplateBank,
+    TemplateConfig,
+    build_template_bank,
+    build_template_banks,
+)
+from posefuse.estimator.translation.association import (
     AssociationConfig,
     TrackView,
     assign,
     cost_matrix,
     innovation_cost,
 )
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.edges import EdgeView, ModelEdges, edge_view, model_edges
-from posefuse.estimator.founding import (
+from posefuse.estimator.translation.founding import (
     FoundingConfig,
     FoundingPair,
     HeldDetection,
@@ -41,26 +51,7 @@ from posefuse.estimator.founding import (
     pair_observations,
     triangulate_pair,
 )
-from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.geometry import rotation_angle
-from posefuse.estimator.merging import MergeCandidate, MergeConfig, merge_pairs
-from posefuse.estimator.mixture import MixtureConfig, RotationMixture
-from posefuse.estimator.objects import Catalog
-from posefuse.estimator.refinement import (
-    RefineConfig,
-    Refinement,
-    accepts_translation,
-    refine_pose,
-)
-from posefuse.estimator.rotation import RotationConfig, RotationMatcher
-from posefuse.estimator.splitting import SplitConfig, outlier_views
-from posefuse.estimator.templates import (
-    TemplateBank,
-    TemplateConfig,
-    build_template_bank,
-    build_template_banks,
-)
-from posefuse.estimator.translation import (
+from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
     TranslationEstimate,
@@ -69,7 +60,16 @@ from posefuse.estimator.translation import (
     marginalize_oldest,
     predict,
 )
-from posefuse.estimator.verification import (
+from posefuse.estimator.translation.merging import MergeCandidate, MergeConfig, merge_pairs
+from posefuse.estimator.translation.splitting import SplitConfig, outlier_views
+from posefuse.estimator.verification.edges import EdgeView, ModelEdges, edge_view, model_edges
+from posefuse.estimator.verification.refinement import (
+    RefineConfig,
+    Refinement,
+    accepts_translation,
+    refine_pose,
+)
+from posefuse.estimator.verification.verify import (
     ScoreCache,
     Verdict,
     VerificationConfig,
@@ -192,7 +192,8 @@ class Track:
     pending: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = field(
         default_factory=list
     )
-    # the most recent views' edge maps (estimator.edges), at most verification.max_views
+    # the most recent views' edge maps (estimator.verification.edges), at most
+    # verification.max_views
     edge_views: list[EdgeView] = field(default_factory=list)
     verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
     scores: ScoreCache = field(default_factory=ScoreCache)  # per-view costs, reused
@@ -497,7 +498,7 @@ class MultiViewEstimator:
 
     def prepare_templates(self, workers: int = 2, progress=None) -> None:
         """Load or build every class's template bank now, building missing ones in ``workers``
-        processes (see :func:`estimator.templates.build_template_banks`)."""
+        processes (see :func:`estimator.rotation.templates.build_template_banks`)."""
         todo = [self.catalog[k] for k in self.catalog if k not in self._matchers]
         banks = build_template_banks(
             todo, self.config.templates, self._template_cache_dir, workers, progress
@@ -594,7 +595,7 @@ class MultiViewEstimator:
           ``settled_translation_frac`` of the diameter from the prior it took;
         - every kept view the pose has not yet been checked against agrees with it: in each,
           the pose costs at most ``settled_margin`` more than the best of the hypotheses a
-          verification would ask about (:func:`estimator.verification.agrees`: within each
+          verification would ask about (:func:`estimator.verification.verify.agrees`: within each
           view, whose costs depend on what it sees, never across views).
 
         A settled track then costs those hypotheses scored in its new views instead of in every
@@ -625,7 +626,7 @@ class MultiViewEstimator:
 
     def refinement_config(self, obj_id: int) -> RefineConfig:
         """The refinement's settings for a class: the tracker's, its turn bounded by the part's
-        basin (:func:`estimator.verification.refinement_reach_deg`)."""
+        basin (:func:`estimator.verification.verify.refinement_reach_deg`)."""
         self._model_edges(obj_id)
         return self._refine_config[obj_id]
 
@@ -648,7 +649,7 @@ class MultiViewEstimator:
 
     def _verify(self, track: Track, new_views: bool = True) -> None:
         """Score the leading hypotheses in all kept views; refine the winner over them
-        (:mod:`estimator.verification`, :mod:`estimator.refinement`).
+        (:mod:`estimator.verification.verify`, :mod:`estimator.verification.refinement`).
 
         Without new views (the mixture gained or lost a component), a winner whose basin holds
         the last accepted refinement (within ``accept_deg``, and its translation a move from
@@ -770,7 +771,8 @@ class MultiViewEstimator:
         return track
 
     def _found_track(self, pair: FoundingPair) -> Track:
-        """A track from two held detections of different views (:mod:`estimator.founding`)."""
+        """A track from two held detections of different views
+        (:mod:`estimator.translation.founding`)."""
         a, b = pair.older, pair.newer
         obs = pair_observations(a, b)
         refs = [(a.stamp_ns, a.index, a.box_depth), (b.stamp_ns, b.index, b.box_depth)]
@@ -817,8 +819,9 @@ class MultiViewEstimator:
             track.status = CONFIRMED
 
     def _split_tracks(self, keys: list[str]) -> list[tuple[str, str]]:
-        """Views a track cannot explain leave it (:mod:`estimator.splitting`); two or more that
-        agree with each other make a new track. Returns (new object_id, from object_id)."""
+        """Views a track cannot explain leave it (:mod:`estimator.translation.splitting`); two or
+        more that agree with each other make a new track. Returns (new object_id, from
+        object_id)."""
         out = []
         for key in keys:
             track = self.tracks[key]
@@ -866,7 +869,7 @@ class MultiViewEstimator:
 
     def _merge_tracks(self) -> list[tuple[str, str]]:
         """Tracks of one class that converged merge into the one with more views
-        (:mod:`estimator.merging`). Returns (absorbed, survivor) pairs."""
+        (:mod:`estimator.translation.merging`). Returns (absorbed, survivor) pairs."""
         out = []
         for obj_id in sorted(self._classes()):
             keys = sorted(k for k, t in self.tracks.items() if t.obj_id == obj_id)

@@ -1,4 +1,6 @@
-"""Object models and the BOP object catalog (``models/obj_XXXXXX.ply`` + ``models_info.json``).
+"""Object models and the BOP object catalog (``models/obj_XXXXXX.ply`` + ``models_info.json``,
+and ``models_eval/obj_XXXXXX.ply`` when the catalog stores the points pose errors are evaluated
+on: ``posefuse.evaluation.eval_points`` derives them; the estimator never reads them).
 
 In memory everything is in metres; the catalog on disk is in millimetres, as BOP has it.
 """
@@ -9,28 +11,21 @@ import dataclasses
 import json
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import trimesh
 from scipy.spatial.distance import pdist
 
-from posefuse.estimator.errors import CatalogError, MeshError
-from posefuse.estimator.eval_points import (
-    derive_eval_points,
-    eval_points_path,
-    read_eval_points,
-    write_eval_points,
-)
-from posefuse.estimator.pose_error import symmetry_transformations
-from posefuse.estimator.symmetry import (
+from posefuse.estimator.core.errors import CatalogError, MeshError
+from posefuse.estimator.core.symmetry import (
     ContinuousSymmetry,
     describe_symmetries,
     detect_symmetries,
     symmetry_transforms,
 )
 
+EVAL_DIR = "models_eval"
 UNITS_TO_METRES = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 PLAUSIBLE_DIAMETER_M = (0.005, 2.0)
 N_MODEL_POINTS = 2000
@@ -50,8 +45,8 @@ class ObjectModel:
             sizes, overlays, baselines); never by the pose errors.
         symmetries_discrete: (D, 4, 4) discrete symmetries without the identity, metres.
         symmetries_continuous: continuous symmetry axes (offset in metres).
-        stored_eval_points: (M, 3) the catalog's ``models_eval`` points, metres, when stored;
-            else :attr:`eval_points` derives them.
+        stored_eval_points: (M, 3) the catalog's ``models_eval`` points, metres, when stored
+            (``posefuse.evaluation.eval_points.eval_points`` derives them otherwise).
     """
 
     obj_id: int
@@ -67,22 +62,6 @@ class ObjectModel:
     def is_symmetric(self) -> bool:
         """True when the model has any symmetry."""
         return len(self.symmetries_discrete) > 0 or len(self.symmetries_continuous) > 0
-
-    @cached_property
-    def eval_points(self) -> np.ndarray:
-        """(M, 3) metres: the points every pose error is evaluated on (estimator.eval_points)."""
-        if self.stored_eval_points is not None:
-            return self.stored_eval_points
-        return derive_eval_points(self.mesh, self.diameter)
-
-    @cached_property
-    def eval_symmetries(self) -> np.ndarray:
-        """(S, 4, 4) the symmetry transformations of the pose errors, metres: bop_toolkit's
-        ``get_symmetry_transformations`` with ``max_sym_disc_step = 0.01``, identity first."""
-        return symmetry_transformations(
-            self.symmetries_discrete,
-            [(np.asarray(c.axis), np.asarray(c.offset)) for c in self.symmetries_continuous],
-        )
 
     def symmetry_transforms(self, max_step_rad: float = np.deg2rad(1.0)) -> np.ndarray:
         """(S, 4, 4) all symmetries with the identity first, continuous axes discretised."""
@@ -264,8 +243,37 @@ def _info_entry(model: ObjectModel) -> dict:
     return entry
 
 
+def eval_points_path(models_dir: str | Path, obj_id: int) -> Path:
+    """``models_eval/obj_XXXXXX.ply`` inside a catalog folder."""
+    return Path(models_dir) / EVAL_DIR / f"obj_{obj_id:06d}.ply"
+
+
+def write_eval_points(path: str | Path, pts_m: np.ndarray) -> Path:
+    """A binary PLY point cloud in millimetres (BOP's unit)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cloud = trimesh.PointCloud(np.asarray(pts_m, dtype=np.float64) * 1000.0)
+    path.write_bytes(trimesh.exchange.ply.export_ply(cloud, encoding="binary"))
+    return path
+
+
+def read_eval_points(path: str | Path) -> np.ndarray:
+    """(N, 3) metres from a PLY written by :func:`write_eval_points` (or any PLY's vertices).
+
+    Raises:
+        ValueError: the file holds no finite 3D points.
+    """
+    loaded = trimesh.load(Path(path), process=False)
+    pts = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0 or not np.all(np.isfinite(pts)):
+        raise ValueError("holds no finite 3D points")
+    return pts / 1000.0
+
+
 def write_catalog(models_dir: str | Path, models: Catalog | list[ObjectModel]) -> Path:
-    """Write a BOP catalog: ``obj_XXXXXX.ply`` (binary, mm) and ``models_info.json``."""
+    """Write a BOP catalog: ``obj_XXXXXX.ply`` (binary, mm), ``models_info.json``, and the
+    ``models_eval`` points of the models that carry them (``stored_eval_points``;
+    ``posefuse.evaluation.eval_points.with_eval_points`` derives them first)."""
     models_dir = Path(models_dir)
     models_dir.mkdir(parents=True, exist_ok=True)
     items = list(models.values()) if isinstance(models, Catalog) else list(models)
@@ -277,7 +285,8 @@ def write_catalog(models_dir: str | Path, models: Catalog | list[ObjectModel]) -
             trimesh.exchange.ply.export_ply(mesh_mm, encoding="binary", include_attributes=False)
         )
         info[str(model.obj_id)] = _info_entry(model)
-        write_eval_points(eval_points_path(models_dir, model.obj_id), model.eval_points)
+        if model.stored_eval_points is not None:
+            write_eval_points(eval_points_path(models_dir, model.obj_id), model.stored_eval_points)
     (models_dir / "models_info.json").write_text(json.dumps(info, indent=2) + "\n")
     return models_dir
 

@@ -1,9 +1,9 @@
 """Data association of one view's detections with the object tracks (paper Section IV).
 
 Per class, every (track, detection) pair gets a cost, or is gated out. A track has two views
-or more (it is founded on two: :mod:`estimator.founding`), so it predicts the detection's
-center through its Gaussian: the cost is the squared Mahalanobis distance ``r^T S^-1 r`` of the
-innovation, with ``S = J P J^T + Sigma_k`` (``J`` the projection Jacobian at the mean), gated
+or more (it is founded on two: :mod:`estimator.translation.founding`), so it predicts the
+detection's center through its Gaussian: the cost is the squared Mahalanobis distance ``r^T S^-1 r``
+of the innovation, with ``S = J P J^T + Sigma_k`` (``J`` the projection Jacobian at the mean), gated
 at ``gate_chi2``. Detections that fit no track go to founding.
 
 The assignment is solved jointly with :func:`scipy.optimize.linear_sum_assignment`.
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from posefuse.estimator.translation import (
+from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
     predict,

@@ -31,8 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.estimator import pose_error
-from posefuse.estimator.evaluation import error_matrix, match_estimates
+from posefuse.evaluation import pose_error
+from posefuse.evaluation.eval_points import eval_points
+from posefuse.evaluation.pose_error import eval_symmetries
+from posefuse.evaluation.scores import error_matrix, match_estimates
 
 FATES = (
     "correct",
@@ -71,8 +73,8 @@ class InstanceFate:
 def _rotation_residual_deg(model, T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """The rotation angle between the estimate and the truth's symmetric equivalent closest to
     it by ADD, degrees."""
-    candidates = T_gt @ model.eval_symmetries  # (S, 4, 4)
-    errors = [pose_error.add(T_est, T, model.eval_points) for T in candidates]
+    candidates = T_gt @ eval_symmetries(model)  # (S, 4, 4)
+    errors = [pose_error.add(T_est, T, eval_points(model)) for T in candidates]
     R = T_est[:3, :3].T @ candidates[int(np.argmin(errors))][:3, :3]
     return float(np.degrees(Rotation.from_matrix(R).magnitude()))
 

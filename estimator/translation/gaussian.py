@@ -14,7 +14,7 @@ Together with the first center it gives a one-view track an honest covariance: t
 the ray, long along it. With more views the measurements dominate it.
 
 The arithmetic is written out for the 3-vector problem rather than calling the batched helpers
-of :mod:`estimator.geometry`: the general functions' validation and broadcasting cost more than
+of :mod:`estimator.core.geometry`: the general functions' validation and broadcasting cost more than
 the problem itself (measured: ~1.1 ms versus ~0.1 ms per 8-view update).
 """
 

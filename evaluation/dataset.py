@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from posefuse.estimator.camera import Camera
-from posefuse.estimator.errors import DatasetError
-from posefuse.estimator.objects import Catalog, load_catalog
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.errors import DatasetError
+from posefuse.estimator.core.objects import Catalog, load_catalog
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,6 +23,8 @@ transformations of :func:`symmetry_transformations`, the identity among them.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -86,6 +88,22 @@ def symmetry_transformations(
     if not cont:
         return np.stack(disc)
     return np.stack([c @ d for d in disc for c in cont])
+
+
+def eval_symmetries(model) -> np.ndarray:
+    """(S, 4, 4) the symmetry transformations of ``model``'s pose errors (an
+    ``estimator.core.objects.ObjectModel``), metres: :func:`symmetry_transformations` with
+    ``max_sym_disc_step = 0.01``, identity first; made once per model."""
+    cached = _EVAL_SYMMETRIES.get(model)
+    if cached is None:
+        cached = _EVAL_SYMMETRIES[model] = symmetry_transformations(
+            model.symmetries_discrete,
+            [(np.asarray(c.axis), np.asarray(c.offset)) for c in model.symmetries_continuous],
+        )
+    return cached
+
+
+_EVAL_SYMMETRIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # model -> (S, 4, 4)
 
 
 def add(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:

@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from posefuse.estimator.evaluation import PoseResult
-from posefuse.estimator.fates import InstanceFate, TrackPose, instance_fates
-from posefuse.estimator.frontend.oracle import OracleFrontend
-from posefuse.estimator.metrics import (
+from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.evaluation.fates import InstanceFate, TrackPose, instance_fates
+from posefuse.evaluation.oracle import OracleFrontend
+from posefuse.evaluation.scores import PoseResult
+from posefuse.evaluation.tracking import (
     AssociationScore,
     association_score,
     nees,
@@ -28,9 +29,8 @@ from posefuse.estimator.metrics import (
     track_identities,
     update_members,
 )
-from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
 
-CHECKPOINTS = (2, 4, 8)  # a track needs two views (estimator.founding)
+CHECKPOINTS = (2, 4, 8)  # a track needs two views (estimator.translation.founding)
 
 
 class LabelledNetworkFrontend:
@@ -44,7 +44,7 @@ class LabelledNetworkFrontend:
         self.max_px = max_px
 
     def detect_with_truth(self, view):
-        from posefuse.estimator.frontend.metrics import match_to_truth
+        from posefuse.evaluation.frontend_metrics import match_to_truth
 
         image = self.dataset.scene(view.scene_id).load_rgb(view.im_id)
         dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
@@ -179,7 +179,7 @@ def run_dataset(
 def _published_nees(estimates, view, identity, catalog, min_visib: float = 0.75):
     """(translation, rotation) NEES of each published pose of a confirmed track, among
     ``estimates`` (ObjectEstimate), whose instance shows more than ``min_visib`` in ``view``
-    (:func:`estimator.metrics.pose_nees`)."""
+    (:func:`evaluation.tracking.pose_nees`)."""
     gts = {gt.gt_idx: gt for gt in view.gts if gt.visib_fract > min_visib}
     out = []
     for e in estimates:

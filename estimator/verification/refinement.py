@@ -1,14 +1,14 @@
 """Refinement of a track's full pose over all its views at once (D2CO, Imperoli & Pretto 2015).
 
-Starting from the verified hypothesis (:mod:`estimator.verification`), the pose
+Starting from the verified hypothesis (:mod:`estimator.verification.verify`), the pose
 ``(R_world_obj, t_world_obj)`` is refined by Levenberg-Marquardt on the directional chamfer of
 the model's projected edges in every kept view, plus the chamfer of its occluding contour to the
-front end's mask boundary (:mod:`estimator.edges`). The cameras are known. Residuals are the
-distances read from the maps (RoI pixels), with Huber weights; samples at the truncation (no
+front end's mask boundary (:mod:`estimator.verification.edges`). The cameras are known. Residuals
+are the distances read from the maps (RoI pixels), with Huber weights; samples at the truncation (no
 edge near: occluded, or clutter-free background) carry no gradient and leave the fit. The
-translation Gaussian of the track is a prior, and the leading mixture component's covariance a
-prior on the rotation, so a direction the edges do not constrain (the axis of a screw) stays
-where the mixture put it, with the mixture's uncertainty.
+translation Gaussian of the track is a prior, and the leading mixture component's covariance a prior
+on the rotation, so a direction the edges do not constrain (the axis of a screw) stays where the
+mixture put it, with the mixture's uncertainty.
 
 Perturbations: ``t <- t + dt``, ``R <- exp(dphi) R`` (a left perturbation in the world frame),
 so the 6x6 covariance, the inverse of the Gauss-Newton information at the solution, is in the
@@ -31,8 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from posefuse.estimator.edges import EdgeView, ModelEdges, pose_edges, project_shown, sample_maps
-from posefuse.estimator.geometry import rotation_angle, so3_exp, so3_log
+from posefuse.estimator.core.geometry import rotation_angle, so3_exp, so3_log
+from posefuse.estimator.verification.edges import (
+    EdgeView,
+    ModelEdges,
+    pose_edges,
+    project_shown,
+    sample_maps,
+)
 
 __all__ = ["RefineConfig", "Refinement", "accepts_translation", "refine_pose"]
 
@@ -334,10 +340,10 @@ def refine_pose(
         R_start: (3, 3) R_world_obj; t_start, t_prior: (3,) metres; cov_t_prior: (3, 3) m^2;
         cov_R_prior: (3, 3) rad^2 (left perturbation, world frame), floored at
         ``rotation_floor_deg``; truncate_px, bins, crease_weight, mask_weight: as the views
-        were built and are scored (:class:`estimator.edges.EdgeConfig`,
-        :class:`estimator.verification.VerificationConfig`); R_init (3, 3), t_init (3,): where
-        to start instead of the start (the priors stay at R_start and t_prior), taken only where
-        it costs less than the start.
+        were built and are scored (:class:`estimator.verification.edges.EdgeConfig`,
+        :class:`estimator.verification.verify.VerificationConfig`); R_init (3, 3), t_init (3,):
+        where to start instead of the start (the priors stay at R_start and t_prior), taken only
+        where it costs less than the start.
     """
     edges = edges.subset(config.sample_stride)
     floor = np.deg2rad(config.rotation_floor_deg) ** 2

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from posefuse.estimator.geometry import rotation_angle, so3_exp
-from posefuse.estimator.templates import TemplateBank
+from posefuse.estimator.core.geometry import rotation_angle, so3_exp
+from posefuse.estimator.rotation.templates import TemplateBank
 
 N_ORIENTATIONS = 8
 

@@ -1,6 +1,6 @@
 """Verification of a track's rotation hypotheses against every view it has.
 
-Each view's LINE-2D match (:mod:`estimator.rotation`) is judged alone. A chrome screw seen
+Each view's LINE-2D match (:mod:`estimator.rotation.matching`) is judged alone. A chrome screw seen
 end-on looks the same head first or tip first, and the max-mixture then holds both, often with
 the wrong one ahead. Other views see the difference plainly. Verification asks them all.
 
@@ -10,10 +10,10 @@ about the object's axes, and the smallest turn about an axis that nearly repeats
 gear's tooth), whether or not the catalog calls them symmetries. Every hypothesis, at the
 track's translation, is scored in every kept view (:func:`score_hypotheses`) by the directional
 chamfer of its projected edges against the view's image edges, plus the chamfer of its occluding
-contour against the boundary of the front end's mask (:mod:`estimator.edges`). The lowest total
-cost leads. The costs also re-weight the components: a component's weight is multiplied by
-``exp(-V (cost - best) / temperature)`` over its V views, so a view that is plainly wrong costs
-a mode its lead, and weights stay a distribution.
+contour against the boundary of the front end's mask (:mod:`estimator.verification.edges`). The
+lowest total cost leads. The costs also re-weight the components: a component's weight is multiplied
+by ``exp(-V (cost - best) / temperature)`` over its V views, so a view that is plainly wrong costs a
+mode its lead, and weights stay a distribution.
 """
 
 from __future__ import annotations
@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from posefuse.estimator.edges import (
+from posefuse.estimator.core.geometry import rotation_angle, so3_exp
+from posefuse.estimator.rotation.mixture import closest_equivalents
+from posefuse.estimator.verification.edges import (
     EdgeConfig,
     EdgeView,
     ModelEdges,
@@ -32,8 +34,6 @@ from posefuse.estimator.edges import (
     sample_maps,
     silhouette_misses,
 )
-from posefuse.estimator.geometry import rotation_angle, so3_exp
-from posefuse.estimator.mixture import closest_equivalents
 
 __all__ = [
     "ScoreCache",

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from posefuse.estimator.geometry import rotation_angle, so3_exp, so3_jacobian_inv_gram, so3_log
+from posefuse.estimator.core.geometry import rotation_angle, so3_exp, so3_jacobian_inv_gram, so3_log
 
 UNIFORM_ANGLE_VAR = np.pi**2 / 3
 

@@ -1,6 +1,6 @@
 """BOP result files, pose errors of ObjectModels, and detection rates with matching as BOP does.
 
-Errors (``estimator.pose_error``, equal to bop_toolkit's) are evaluated on each model's
+Errors (``evaluation.pose_error``, equal to bop_toolkit's) are evaluated on each model's
 ``eval_points`` with its ``eval_symmetries`` (BOP's transformations, ``max_sym_disc_step =
 0.01``). Every report gives, for the instances with ``visib_fract > min_visib`` (0.75, the
 paper's protocol):
@@ -31,8 +31,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from posefuse.estimator.errors import ResultsError
-from posefuse.estimator.pose_error import transform_points
+from posefuse.estimator.core.errors import ResultsError
+from posefuse.evaluation.eval_points import eval_points
+from posefuse.evaluation.pose_error import eval_symmetries, transform_points
 
 RESULTS_HEADER = ["scene_id", "im_id", "obj_id", "score", "R", "t", "time"]
 METRICS = ("add_sym", "mssd", "adi")
@@ -147,7 +148,7 @@ def error_matrix(
     """(E, G) errors in metres of E estimates against G true poses of one ObjectModel.
 
     T_est: (E, 4, 4), T_gt: (G, 4, 4) ``T_cam_obj``. Equal, entry by entry, to
-    ``estimator.pose_error`` on ``model.eval_points`` and ``model.eval_symmetries``. With a
+    ``evaluation.pose_error`` on ``model.eval_points`` and ``model.eval_symmetries``. With a
     ``cutoff`` (metres), ADD-sym and MSSD entries below it are exact and those at or above it are
     only known to be there (``inf``, or a value above the true one: symmetries whose lower bound
     passes the cutoff are not computed).
@@ -155,7 +156,7 @@ def error_matrix(
     _check_metric(metric)
     T_est = np.asarray(T_est, dtype=np.float64).reshape(-1, 4, 4)
     T_gt = np.asarray(T_gt, dtype=np.float64).reshape(-1, 4, 4)
-    pts = model.eval_points
+    pts = eval_points(model)
     out = np.full((len(T_est), len(T_gt)), np.inf)
     if out.size == 0:
         return out
@@ -168,7 +169,7 @@ def error_matrix(
         return out
     # Distances are invariant under rigid motion: |T_gt S p - T_est p| = |A p - p| with
     # A = inv(T_est) T_gt S, so each (estimate, truth, symmetry) costs one 3x3 map of the points.
-    A = np.linalg.inv(T_est)[:, None, None] @ T_gt[None, :, None] @ model.eval_symmetries
+    A = np.linalg.inv(T_est)[:, None, None] @ T_gt[None, :, None] @ eval_symmetries(model)
     M = A[..., :3, :3] - np.eye(3)  # (E, G, S, 3, 3)
     t = A[..., :3, 3]  # (E, G, S, 3)
     # the mean distance is at least the distance of the means (Jensen), and the max at least
