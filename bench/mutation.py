@@ -1,8 +1,15 @@
-"""Mutation testing of one estimator module against its own fast tests (mutmut).
+"""Mutation testing of one estimator (or evaluation) module against its own fast tests (mutmut).
 
     pip install -e ".[dev]"
-    nice -n 19 python -m posefuse.bench.mutation geometry            # or estimator/geometry.py
+    nice -n 19 python -m posefuse.bench.mutation association
     python -m posefuse.bench.mutation geometry --tests tests/test_geometry.py --max-children 2
+
+The module is named by its path (``estimator/translation/association.py``), its path below
+``estimator/`` (``translation/association``), its import name
+(``posefuse.estimator.translation.association``) or, when no other module has it, its own name
+(``association``); ``evaluation/pose_error.py`` (or ``pose_error``) too. The flat names of the
+layout before the paper's steps became folders still work (``estimator/geometry.py``;
+``translation``, ``verification`` and ``rotation`` for the modules they became).
 
 mutmut makes many small changes ("mutants") to the module's functions (a ``<`` for a ``<=``,
 a constant plus one, an argument dropped, ...) and runs the tests that reach each changed
@@ -10,16 +17,18 @@ function: a mutant the tests fail on is *killed*; one they still pass on *surviv
 the tests miss a behaviour or the change is *equivalent* (no input can tell it from the
 original). The score is killed / (mutants - equivalent).
 
-The run happens in a scratch copy (``--workdir``, default ``$TMPDIR/posefuse-mutation/MODULE``):
+The run happens in a scratch copy (``--workdir``, default
+``$TMPDIR/posefuse-mutation/estimator.translation.association`` and so on):
 the package laid out as ``posefuse/`` beside ``tests/``, and mutmut's own ``mutants/`` copy
 inside it, so the checkout, and any process importing it, never sees a mutant. mutmut's results
 stay there (``cd WORKDIR && mutmut show NAME`` prints a mutant's diff).
 
-Equivalent mutants are listed in ``bench/mutation_equivalent.json`` by module, each as the
-function and the diff's changed lines with a word on why no test can tell them apart, so the
-list survives renumbering. The command prints killed, survived (with each diff) and equivalent,
-and exits 1 if a survivor is not on the list. It is not part of the README's test command:
-a module takes minutes to an hour on 2 cores (docs/testing.md has the measured runs).
+Equivalent mutants are listed in ``bench/mutation_equivalent.json`` by module (its path, as
+``estimator/translation/association.py``), each as the function and the diff's changed lines
+with a word on why no test can tell them apart, so the list survives renumbering. The command
+prints killed, survived (with each diff) and equivalent, and exits 1 if a survivor is not on the
+list. It is not part of the README's test command: a module takes minutes to an hour on 2 cores
+(docs/testing.md has the measured runs).
 """
 
 from __future__ import annotations
@@ -37,17 +46,27 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 EQUIVALENT_FILE = REPO / "bench" / "mutation_equivalent.json"
 
+# the folders whose modules can be mutated
+PACKAGES = ("estimator", "evaluation")
 # each module's own fast tests (seconds, not minutes)
 DEFAULT_TESTS = {
-    "geometry": ["tests/test_geometry.py"],
-    "translation": ["tests/test_translation.py"],
-    "association": ["tests/test_association.py"],
-    "mixture": ["tests/test_mixture.py"],
-    "pose_error": ["tests/test_evaluation.py"],
-    "symmetry": ["tests/test_symmetry.py"],
-    "verification": ["tests/test_verification.py"],
-    "edges": ["tests/test_verification.py"],
-    "refinement": ["tests/test_refinement.py"],
+    "estimator/core/geometry.py": ["tests/test_geometry.py"],
+    "estimator/core/projection.py": ["tests/test_geometry.py"],
+    "estimator/core/symmetry.py": ["tests/test_symmetry.py"],
+    "estimator/translation/gaussian.py": ["tests/test_translation.py"],
+    "estimator/translation/association.py": ["tests/test_association.py"],
+    "estimator/rotation/mixture.py": ["tests/test_mixture.py"],
+    "estimator/verification/verify.py": ["tests/test_verification.py"],
+    "estimator/verification/model_edges.py": ["tests/test_verification.py"],
+    "estimator/verification/edge_maps.py": ["tests/test_verification.py"],
+    "estimator/verification/refinement.py": ["tests/test_refinement.py"],
+    "evaluation/pose_error.py": ["tests/test_evaluation.py"],
+}
+# flat modules of the old layout that became a module of another name
+RENAMED = {
+    "translation": "estimator/translation/gaussian.py",
+    "verification": "estimator/verification/verify.py",
+    "rotation": "estimator/rotation/matching.py",
 }
 # what the tests read besides the package: copied next to tests/ as in the checkout
 DATA_DIRS = ("catalogs", "models", "recordings")
@@ -57,13 +76,35 @@ KILLED = ("killed", "timeout", "caught by type check", "segfault")
 SKIP_TOP = {"tests", "docs", "build", "dist", "runs", "data", "out", "mutants"}
 
 
-def module_name(arg: str) -> str:
-    """'geometry', 'estimator/geometry.py' or 'posefuse.estimator.core.geometry' -> 'geometry'."""
-    name = arg.replace("\\", "/").removesuffix(".py").replace("/", ".")
-    name = name.removeprefix("posefuse.").removeprefix("estimator.")
-    if not (REPO / "estimator" / f"{name}.py").is_file():
-        raise SystemExit(f"no module estimator/{name}.py in {REPO}")
-    return name
+def _modules() -> list[str]:
+    """Every module of PACKAGES, as its path from the checkout ('estimator/core/geometry.py')."""
+    return sorted(
+        p.relative_to(REPO).as_posix()
+        for package in PACKAGES
+        for p in (REPO / package).rglob("*.py")
+        if p.name != "__init__.py" and "mutants" not in p.parts
+    )
+
+
+def module_path(arg: str) -> str:
+    """The module's path from the checkout, from any of the names the docstring lists:
+    'association', 'translation/association', 'estimator/translation/association.py' and
+    'posefuse.estimator.translation.association' -> 'estimator/translation/association.py'."""
+    name = arg.strip().replace("\\", "/").removesuffix(".py").removeprefix("./")
+    if "/" not in name:
+        name = name.replace(".", "/")
+    name = name.removeprefix("posefuse/")
+    if (REPO / f"{name}.py").is_file() and name.startswith(tuple(f"{p}/" for p in PACKAGES)):
+        return f"{name}.py"
+    name = name.removeprefix("estimator/")  # the old flat layout: estimator/geometry.py
+    if name in RENAMED:
+        return RENAMED[name]
+    found = [m for m in _modules() if f"/{m}".removesuffix(".py").endswith(f"/{name}")]
+    if len(found) == 1:
+        return found[0]
+    if found:
+        raise SystemExit(f"{arg!r} names several modules: {', '.join(found)}")
+    raise SystemExit(f"no module {arg!r} in {', '.join(f'{p}/' for p in PACKAGES)} of {REPO}")
 
 
 def _listed_files() -> list[Path]:
@@ -77,7 +118,7 @@ def _listed_files() -> list[Path]:
     return [Path(p) for p in out.split("\0") if p and (REPO / p).is_file()]
 
 
-def prepare(workdir: Path, name: str, tests: list[str]) -> None:
+def prepare(workdir: Path, module: str, tests: list[str]) -> None:
     """The scratch copy: posefuse/ (the package), tests/, the data folders, a pyproject.toml
     with mutmut's configuration for this one module."""
     if workdir.exists():
@@ -100,7 +141,7 @@ def prepare(workdir: Path, name: str, tests: list[str]) -> None:
         for target in targets:
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(REPO / rel, target)
-    source = f"posefuse/estimator/{name}.py"
+    source = f"posefuse/{module}"
     config = {
         "source_paths": ["posefuse"],
         "only_mutate": [source],
@@ -135,11 +176,11 @@ def _mutmut(workdir: Path, *args: str, capture: bool = True) -> subprocess.Compl
     )
 
 
-def _statuses(workdir: Path, name: str) -> dict[str, str]:
+def _statuses(workdir: Path, module: str) -> dict[str, str]:
     """{mutant name: status} from mutmut's own record of the run."""
     from mutmut.stats import status_by_exit_code
 
-    meta = workdir / "mutants" / "posefuse" / "estimator" / f"{name}.py.meta"
+    meta = workdir / "mutants" / "posefuse" / f"{module}.meta"
     data = json.loads(meta.read_text())
     return {k: status_by_exit_code[v] for k, v in data["exit_code_by_key"].items()}
 
@@ -152,11 +193,11 @@ print(json.dumps({n: get_diff_for_mutant(n, path=path) for n in names}))
 """
 
 
-def _diffs(workdir: Path, name: str, mutants: list[str]) -> dict[str, str]:
+def _diffs(workdir: Path, module: str, mutants: list[str]) -> dict[str, str]:
     """{mutant: its unified diff}, all in one process (``mutmut show`` starts one per mutant)."""
     if not mutants:
         return {}
-    path = f"posefuse/estimator/{name}.py"
+    path = f"posefuse/{module}"
     out = subprocess.run(
         [sys.executable, "-c", _DIFFS, json.dumps(mutants), path],
         cwd=workdir,
@@ -176,10 +217,11 @@ def changed_lines(diff: str) -> list[str]:
     ]
 
 
-def load_equivalent(name: str) -> list[dict]:
+def load_equivalent(module: str) -> list[dict]:
+    """The equivalent mutants listed for ``module`` ('estimator/core/geometry.py')."""
     if not EQUIVALENT_FILE.is_file():
         return []
-    return json.loads(EQUIVALENT_FILE.read_text()).get(name, [])
+    return json.loads(EQUIVALENT_FILE.read_text()).get(module, [])
 
 
 def function_of(mutant: str) -> str:
@@ -197,7 +239,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
-        "module", help="geometry, estimator/geometry.py or posefuse.estimator.core.geometry"
+        "module",
+        help="association, translation/association, estimator/translation/association.py, "
+        "posefuse.estimator.translation.association or evaluation/pose_error.py",
     )
     parser.add_argument("--tests", nargs="+", help="test files (default: the module's own)")
     parser.add_argument("--workdir", type=Path, help="scratch copy (default under $TMPDIR)")
@@ -221,26 +265,27 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         print("mutmut is not installed: pip install -e '.[dev]'", file=sys.stderr)
         return 2
-    name = module_name(args.module)
-    tests = args.tests or DEFAULT_TESTS.get(name)
+    module = module_path(args.module)
+    tests = args.tests or DEFAULT_TESTS.get(module)
     if not tests:
-        print(f"no default tests for {name}: pass --tests", file=sys.stderr)
+        print(f"no default tests for {module}: pass --tests", file=sys.stderr)
         return 2
-    workdir = args.workdir or Path(tempfile.gettempdir()) / "posefuse-mutation" / name
+    scratch = module.removesuffix(".py").replace("/", ".")
+    workdir = args.workdir or Path(tempfile.gettempdir()) / "posefuse-mutation" / scratch
     workdir = workdir.resolve()
     t0 = time.perf_counter()
     if args.rerun_survivors:
         if not (workdir / "mutants").is_dir():
             print(f"no earlier run in {workdir}", file=sys.stderr)
             return 2
-        last = _statuses(workdir, name)
+        last = _statuses(workdir, module)
         again = sorted(m for m, s in last.items() if s not in KILLED)
         for dest in (workdir / "tests", workdir / "mutants" / "tests"):
             shutil.rmtree(dest)
             shutil.copytree(
                 REPO / "tests", dest, ignore=shutil.ignore_patterns("node_modules", "__pycache__")
             )
-        print(f"re-running {len(again)} mutants of estimator/{name}.py", flush=True)
+        print(f"re-running {len(again)} mutants of {module}", flush=True)
         if again:
             proc = _mutmut(
                 workdir, "run", "--max-children", str(args.max_children), *again, capture=False
@@ -249,19 +294,19 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"mutmut run exited {proc.returncode}", file=sys.stderr)
                 return 2
     elif not args.report_only:
-        prepare(workdir, name, tests)
-        print(f"mutating estimator/{name}.py against {' '.join(tests)} in {workdir}", flush=True)
+        prepare(workdir, module, tests)
+        print(f"mutating {module} against {' '.join(tests)} in {workdir}", flush=True)
         proc = _mutmut(workdir, "run", "--max-children", str(args.max_children), capture=False)
         if proc.returncode not in (0, 1):
             print(f"mutmut run exited {proc.returncode}", file=sys.stderr)
             return 2
-    statuses = _statuses(workdir, name)
-    equivalent = load_equivalent(name)
+    statuses = _statuses(workdir, module)
+    equivalent = load_equivalent(module)
     known = {(e["function"], tuple(e["diff"])): e["why"] for e in equivalent}
     killed = [m for m, s in statuses.items() if s in KILLED]
     rest = sorted(m for m in statuses if m not in killed)
     survived, equiv = [], []
-    diffs = _diffs(workdir, name, rest)
+    diffs = _diffs(workdir, module, rest)
     for m in rest:
         d = diffs[m]
         key = (function_of(m), tuple(changed_lines(d)))
@@ -273,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     live = total - len(equiv)
     score = len(killed) / live if live else 1.0
     minutes = (time.perf_counter() - t0) / 60
-    print(f"\nestimator/{name}.py against {' '.join(tests)}")
+    print(f"\n{module} against {' '.join(tests)}")
     print(
         f"mutants {total}: killed {len(killed)}, survived {len(survived)}, "
         f"equivalent {len(equiv)}; score {100 * score:.1f}% of non-equivalent "
@@ -287,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         args.json.write_text(
             json.dumps(
                 {
-                    "module": f"estimator/{name}.py",
+                    "module": module,
                     "tests": tests,
                     "total": total,
                     "killed": len(killed),

@@ -19,7 +19,7 @@ from posefuse.estimator.core.symmetry import (
     detect_symmetries,
 )
 from posefuse.evaluation.eval_points import EVAL_SPACING, derive_eval_points
-from posefuse.evaluation.pose_error import symmetry_transformations
+from posefuse.evaluation.pose_error import bop_symmetry_transformations
 
 REAL_MESH_DIR = Path(__file__).resolve().parents[1].parent / "shared" / "objects"
 REAL_MESHES = ("tee_fitting", "screw", "eye_bolt", "gear", "bracket")
@@ -45,7 +45,7 @@ def detect_row(source: str, name: str, mesh) -> dict:
     report = detect_symmetries(mesh, diameter)
     seconds = time.perf_counter() - start
     eval_points = derive_eval_points(mesh, diameter)
-    eval_symmetries = symmetry_transformations(
+    eval_symmetries = bop_symmetry_transformations(
         report.discrete, [(np.asarray(c.axis), np.asarray(c.offset)) for c in report.continuous]
     )
     axes = "; ".join(

@@ -3,10 +3,10 @@
 python -m posefuse.bench.occlusion_agreement [--catalog DIR] [--poses 200] [--seed 1]
 
 For each part of the catalog: random turns, the part 4 to 12 diameters in front of the camera,
-and the samples that show (:func:`estimator.verification.edges.pose_edges`) with the occlusion table
-against those with the rays of every pose (``occlusion_directions=0``). Prints, per part, the
-samples the table shows that the rays hide, those it hides that the rays show, and how many show
-without any occlusion test; the contour's the same way.
+and the samples that show (:func:`estimator.verification.model_edges.pose_edges`) with the
+occlusion table against those with the rays of every pose (``occlusion_directions=0``). Prints,
+per part, the samples the table shows that the rays hide, those it hides that the rays show, and
+how many show without any occlusion test; the contour's the same way.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from dataclasses import replace
 import numpy as np
 
 from posefuse.estimator.core.geometry import so3_exp
-from posefuse.estimator.verification.edges import EdgeConfig, model_edges, pose_edges
+from posefuse.estimator.verification.edge_maps import EdgeConfig
+from posefuse.estimator.verification.model_edges import model_edges, pose_edges
 
 
 def agreement(model, n_poses: int, seed: int) -> dict[str, int]:

@@ -83,18 +83,20 @@ class StageTimer:
 def instrumented(timer: StageTimer):
     """Wrap the estimator's stage functions with ``timer`` for the duration of the block."""
     import posefuse.estimator.rotation.matching as rotation
-    import posefuse.estimator.tracker as tracker
+    import posefuse.estimator.tracker.estimator as walk
+    import posefuse.estimator.tracker.pose_stage as tracker
+    import posefuse.estimator.tracker.tracks as tracks
     from posefuse.estimator.rotation.mixture import RotationMixture
 
     patches = [
-        (tracker, "cost_matrix", "association"),
-        (tracker, "assign", "association"),
-        (tracker, "estimate_translation", "translation"),
-        (tracker, "marginalize_oldest", "translation"),
-        (tracker, "choose_pairs", "founding+merging"),
-        (tracker, "triangulate_pair", "founding+merging"),
-        (tracker, "merge_pairs", "founding+merging"),
-        (tracker, "outlier_views", "founding+merging"),
+        (walk, "cost_matrix", "association"),
+        (walk, "assign", "association"),
+        (tracks, "estimate_translation", "translation"),
+        (tracks, "marginalize_oldest", "translation"),
+        (walk, "choose_pairs", "founding+merging"),
+        (tracks, "triangulate_pair", "founding+merging"),
+        (tracks, "merge_pairs", "founding+merging"),
+        (tracks, "outlier_views", "founding+merging"),
         (rotation, "crop_roi", "re-crop"),
         (rotation.RotationMatcher, "scores", "template scoring"),
         (rotation, "select_hypotheses", "template scoring"),
@@ -205,7 +207,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
     # the self-occlusion rays the tables cast over the whole run (viewpoints asked the first time)
     rays = sum(
         edges.occlusion.rays_cast
-        for edges in estimator._edges.values()
+        for edges in estimator.poses.edges.values()
         if edges.occlusion is not None
     )
     return {

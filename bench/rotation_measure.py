@@ -25,7 +25,8 @@ from collections import defaultdict
 import numpy as np
 
 from posefuse.bench.baselines import MultiScaleMatcher
-from posefuse.estimator.rotation.matching import RotationMatcher, crop_roi
+from posefuse.estimator.rotation.matching import RotationMatcher
+from posefuse.estimator.rotation.recrop import crop_roi
 from posefuse.estimator.rotation.templates import build_template_bank, make_detector
 from posefuse.evaluation.dataset import load_dataset
 

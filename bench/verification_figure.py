@@ -16,7 +16,7 @@ import argparse
 import cv2
 import numpy as np
 
-from posefuse.estimator.verification.edges import pose_edges, project_edges
+from posefuse.estimator.verification.model_edges import pose_edges, project_edges
 
 
 def _crop(image, uv_sets, margin=30):
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
         print("no track where verification overturned the mixture's lead")
         return 1
     turned, sid, track, R_lead, R_win, views, model = best
-    est_edges = MultiViewEstimator(ds.catalog)._model_edges(track.obj_id)[0]
+    est_edges = MultiViewEstimator(ds.catalog).poses.model_edges(track.obj_id)[0]
     tiles = []
     for ev in (track.edge_views[0], track.edge_views[-1]):
         view, image = views[ev.stamp_ns]

@@ -47,6 +47,7 @@ def register(subparsers) -> None:
 
 
 def _cmd_run_active(args: argparse.Namespace) -> int:
+    # lazy: the estimator and the simulation load trimesh, scipy and cv2 (~0.6 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.frontend.network import NetworkFrontend
     from posefuse.estimator.tracker import MultiViewEstimator
@@ -65,7 +66,7 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
     if args.scenes < 1:
         raise PosefuseError("run-active: --scenes must be at least 1")
     if args.dataset:
-        from posefuse.evaluation.dataset import load_dataset
+        from posefuse.evaluation.dataset import load_dataset  # lazy: as above
 
         dataset = load_dataset(args.dataset)
         catalog = dataset.catalog
@@ -85,7 +86,7 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
         if args.dataset:
             source = RecordedScene(dataset.scene(scene_id), detect)
             where = f"{args.dataset} scene {scene_id}"
-        else:
+        else:  # lazy: as above
             from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
             from posefuse.sim.synth import scene_seed
 

@@ -4,6 +4,7 @@ the Zenoh transport options and the catalog table."""
 from __future__ import annotations
 
 import argparse
+import socket
 import textwrap
 
 from posefuse.estimator.core.errors import PosefuseError
@@ -51,6 +52,7 @@ def add_command(
 def _settings(args: argparse.Namespace):
     """The daemon's settings: the options given on the command line over the environment
     (POSEFUSE_*), the POSEFUSE_CONFIG file and the defaults."""
+    # lazy: pydantic and pydantic-settings (~0.1 s), too slow for --help
     from pydantic import ValidationError
 
     from posefuse.service.settings import Settings
@@ -58,7 +60,7 @@ def _settings(args: argparse.Namespace):
     overrides = {}
     parts = getattr(args, "parts", None)
     if parts is not None:
-        from posefuse.sim.onboard import load_part_set
+        from posefuse.sim.onboard import load_part_set  # lazy: loads trimesh and scipy (~0.5 s)
 
         if getattr(args, "catalog", None) or getattr(args, "model", None):
             raise PosefuseError("--parts names the catalog and the model: drop --catalog/--model")
@@ -150,8 +152,6 @@ def add_parts_arg(p: argparse.ArgumentParser) -> None:
 def claim_http_port(settings):
     """The settings with a usable HTTP port, checked before anything is announced: port 0 picks
     a free one; a port in use is one clear error naming it."""
-    import socket
-
     with socket.socket() as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -19,6 +20,7 @@ from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_catalog(args: argparse.Namespace) -> int:
+    # lazy: the catalog modules load trimesh and scipy (~0.5 s), too slow for --help
     from posefuse.estimator.core.objects import Catalog, load_mesh, make_model, write_catalog
     from posefuse.evaluation.eval_points import with_eval_points
 
@@ -29,7 +31,7 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
             models.append(make_model(k + 1, name, load_mesh(path, units=args.units)))
         catalog = Catalog(models)
     else:
-        from posefuse.sim.catalog import robi_like_catalog
+        from posefuse.sim.catalog import robi_like_catalog  # lazy: trimesh, scipy (~0.5 s)
 
         catalog = robi_like_catalog()
     write_catalog(Path(args.out), with_eval_points(catalog))
@@ -39,15 +41,14 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
-    import dataclasses
-
+    # lazy: the renderer loads trimesh, scipy and cv2 (~0.6 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.sim.scenes import INTRINSICS, PROFILES
     from posefuse.sim.synth import SynthConfig, generate_dataset
 
     camera = INTRINSICS.get(args.intrinsics)
     if args.camera:
-        from posefuse.sim.scenes import camera_of_size
+        from posefuse.sim.scenes import camera_of_size  # lazy: trimesh, scipy, cv2 (~0.5 s)
 
         try:
             w, h = (int(x) for x in args.camera.lower().split("x"))
@@ -88,6 +89,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    # lazy: the dataset and scoring load trimesh, scipy and cv2 (~0.5 s)
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.evaluation.scores import evaluate, read_results, read_targets
 
@@ -109,6 +111,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_overlay(args: argparse.Namespace) -> int:
+    # lazy: the dataset loads trimesh, scipy and cv2 (~0.5 s)
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.sim.overlay import write_gt_overlay
 

@@ -25,14 +25,14 @@ def _parse_symmetry(specs: list[str] | None) -> dict[str, str]:
 
 
 def _cmd_onboard(args: argparse.Namespace) -> int:
-    try:
+    try:  # lazy: torch is the optional [train] extra
         import torch  # noqa: F401
     except ImportError:
         raise PosefuseError(
             'onboard trains the front end and needs torch: pip install -e ".[train]" '
             "(a CPU build, torch==2.13.0)"
         ) from None
-    from posefuse.sim.onboard import OnboardConfig, onboard, parts_table
+    from posefuse.sim.onboard import OnboardConfig, onboard, parts_table  # lazy: trimesh, scipy
 
     config = OnboardConfig(
         units=args.units,
@@ -65,6 +65,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
 
 def _write_demo(out: Path) -> None:
     """DIR/demo.mcap: the held-out mixed bins as a camera publishes them, for ``demo --parts``."""
+    # lazy: the recorder and the dataset load mcap, scipy, trimesh and cv2 (~0.6 s)
     from posefuse.clients.demo import make_recording
     from posefuse.evaluation.dataset import load_dataset
 

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import queue
 import signal
 import sys
 import threading
@@ -23,17 +24,17 @@ from posefuse.cli.common import (
     settings_default,
 )
 from posefuse.estimator.core.errors import PosefuseError
+from posefuse.service.keys import Keys
 from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    import queue
-
+    # lazy: zenoh (native) only for the network commands; the catalog and the recorder load
+    # trimesh, scipy, cv2, mcap and pydantic-settings (~0.6 s)
     import zenoh
 
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.service.foxglove import FoxgloveMirror
-    from posefuse.service.keys import Keys
     from posefuse.service.recording import Recorder, RecordingFull
     from posefuse.service.settings import zenoh_config
 
@@ -59,7 +60,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())  # as Ctrl-C: the file is finished
     full: RecordingFull | None = None
     if args.ros2:  # a rosbag2 folder of ROS 2 messages instead of our own MCAP
-        from posefuse.service.ros2 import Ros2BagRecorder
+        from posefuse.service.ros2 import Ros2BagRecorder  # lazy: rosbags, scipy, cv2
 
         if Path(args.out).exists():
             raise PosefuseError(f"--out {args.out}: a rosbag2 folder is created; it exists")
@@ -95,6 +96,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _replay_live(args: argparse.Namespace, settings) -> int:
+    # lazy: zenoh (native) and tqdm only for --live; the replay modules load scipy, trimesh,
+    # cv2 and mcap (~0.9 s)
     import zenoh
     from tqdm import tqdm
 
@@ -135,6 +138,7 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    # lazy: the estimator and the replay modules load trimesh, scipy, cv2 and mcap (~0.9 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.service.foxglove import FoxgloveMirror
@@ -179,6 +183,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_make_demo(args: argparse.Namespace) -> int:
+    # lazy: the renderer and the recorder load trimesh, scipy, cv2 and mcap (~0.6 s)
     from posefuse.clients.demo import make_recording
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.evaluation.dataset import load_dataset

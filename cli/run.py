@@ -11,6 +11,7 @@ and the quickstart that shows all of it on one small bin.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ import numpy as np
 
 from posefuse.cli.common import RUNS, add_command, add_parts_arg
 from posefuse.estimator.core.errors import PosefuseError
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
 
 # The oracle front end of run-dataset (and of the quickstart): true centers with this much
@@ -53,13 +55,12 @@ def make_frontend(dataset, kind: str, oracle=None, model: str = DEFAULT_MODEL, s
     """The detections of a run: ``oracle`` (noisy ground truth, ``oracle`` an OracleConfig) or
     ``network`` (the learned front end, labelled with the instance each lies on for scoring)."""
     if kind == "network":
+        # lazy: cv2, and scipy/trimesh through run_dataset (~0.6 s), too slow for --help
         from posefuse.estimator.frontend.network import NetworkFrontend
         from posefuse.evaluation.run_dataset import LabelledNetworkFrontend
 
         return LabelledNetworkFrontend(dataset, NetworkFrontend(model, dataset.catalog, seed=seed))
     if kind == "oracle":
-        from posefuse.evaluation.oracle import OracleFrontend
-
         return OracleFrontend(dataset, oracle)
     raise PosefuseError(f"--frontend: {kind!r} is not known; use oracle or network")
 
@@ -78,6 +79,7 @@ def run_and_write(
     template banks built or loaded once) and write its tables into ``out``: translation errors,
     with ``rotation`` also BOP results and targets per checkpoint, their scores and the fate of
     every scored instance."""
+    # lazy: the estimator and its scoring load scipy, trimesh and cv2 (~0.6 s)
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.evaluation.fates import fate_table
     from posefuse.evaluation.run_dataset import (
@@ -155,8 +157,6 @@ def _switch(value: str) -> bool:
 def _numeric_fields(cls) -> dict[str, object]:
     """The int, float and bool fields of a dataclass, each with its parser (the annotations
     are strings); ``enabled`` is left out: the ablation flags switch it."""
-    import dataclasses
-
     parsers = {"int": int, "float": float, "float | None": float, "bool": _switch}
     return {
         f.name: parsers[f.type]
@@ -170,9 +170,8 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     ``edges.KEY`` for the EdgeConfig it holds, or ``refinement.KEY`` for the RefineConfig (an
     optional one, such as ``settled_margin``, also takes ``none``); a PosefuseError names a
     malformed pair or an unknown field."""
-    import dataclasses
-
-    from posefuse.estimator.verification.edges import EdgeConfig
+    # lazy: the verification modules load scipy, trimesh and cv2 (~0.5 s)
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
     from posefuse.estimator.verification.refinement import RefineConfig
     from posefuse.estimator.verification.verify import VerificationConfig
 
@@ -207,9 +206,7 @@ def tracker_config(
 ):
     """The estimator's settings, with the multi-view verification or the refinement off, and
     verification settings replaced (:func:`verification_settings`)."""
-    import dataclasses
-
-    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.tracker import TrackerConfig  # lazy: scipy, trimesh, cv2 (~0.6 s)
 
     config = TrackerConfig()
     if verification:
@@ -250,13 +247,12 @@ def tracker_config(
 
 
 def _cmd_run_dataset(args: argparse.Namespace) -> int:
-    from posefuse.evaluation.dataset import load_dataset
-    from posefuse.evaluation.oracle import OracleConfig
+    from posefuse.evaluation.dataset import load_dataset  # lazy: scipy, trimesh, cv2 (~0.5 s)
 
     if args.frontend not in ("oracle", "network"):
         raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
     if args.parts is not None:
-        from posefuse.sim.onboard import load_part_set
+        from posefuse.sim.onboard import load_part_set  # lazy: loads trimesh and scipy (~0.5 s)
 
         if args.model is not None:
             raise PosefuseError("--parts names the model: drop --model")
@@ -306,6 +302,7 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
 
 
 def _cmd_templates(args: argparse.Namespace) -> int:
+    # lazy: the catalog and templates load trimesh, scipy and cv2 (~0.6 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.rotation.templates import build_template_bank
 
@@ -325,6 +322,7 @@ def _cmd_templates(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_frontend(args: argparse.Namespace) -> int:
+    # lazy: cv2, and the dataset and scoring load scipy and trimesh (~0.5 s)
     from posefuse.estimator.frontend.network import NetworkFrontend
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.evaluation.frontend_metrics import score_frontend
@@ -344,6 +342,7 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
 
 
 def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
+    # lazy: cv2 (~30 ms), and the dataset loads scipy and trimesh (~0.5 s)
     import cv2
 
     from posefuse.estimator.frontend.network import NetworkFrontend
@@ -369,9 +368,9 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
 
 
 def _cmd_quickstart(args: argparse.Namespace) -> int:
+    # lazy: the catalog, renderer and scoring load trimesh, scipy and cv2 (~0.6 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.evaluation.dataset import load_dataset
-    from posefuse.evaluation.oracle import OracleConfig
     from posefuse.evaluation.scores import checkpoint_markdown
     from posefuse.sim.overlay import write_gt_overlay
     from posefuse.sim.scenes import SceneSpec

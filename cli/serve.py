@@ -9,9 +9,17 @@
 from __future__ import annotations
 
 import argparse
+import ctypes
+import ctypes.util
 import json
+import logging
+import os
 import signal
+import socket
+import sys
+import threading
 import time
+from pathlib import Path
 
 from posefuse.cli.common import (
     _add_transport_args,
@@ -26,8 +34,8 @@ from posefuse.service.resources import DEFAULT_RECORDING
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    import threading
-
+    # lazy: uvicorn and the service (fastapi, pydantic, trimesh, scipy, cv2; ~0.9 s) are only
+    # for this command, too slow for --help
     import uvicorn
 
     from posefuse.estimator.core.objects import load_catalog
@@ -101,10 +109,6 @@ def _leave(code: int) -> None:
     "FATAL: exception not rethrown" (exit -6) after a clean stop. It happened to one SIGTERM
     test in a suite run beside a training job; nothing is left to do at that point, so nothing
     is lost by not finalizing."""
-    import logging
-    import os
-    import sys
-
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
@@ -118,7 +122,7 @@ def _server(config):
     """uvicorn's server, except that a SIGTERM or SIGINT only stops it: uvicorn re-raises the
     signal once it has stopped, which kills the process before the daemon has fused its frame
     in flight and written its snapshot. The caller stops the cells, then returns 0."""
-    import uvicorn
+    import uvicorn  # lazy: only `serve` runs a server (~45 ms)
 
     class Server(uvicorn.Server):
         stop_signal: int | None = None
@@ -146,9 +150,6 @@ def _stop_cells(cells, thread) -> None:
 def limit_malloc_arenas(arenas: int = 2) -> None:
     """Few glibc malloc arenas: with one per thread (the default), freed image buffers stay
     with the process and RSS only grows under load. No-op where mallopt is missing."""
-    import ctypes
-    import ctypes.util
-
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         M_ARENA_MAX = -8
@@ -158,6 +159,8 @@ def limit_malloc_arenas(arenas: int = 2) -> None:
 
 
 def _cmd_publish(args: argparse.Namespace) -> int:
+    # lazy: zenoh (native) and tqdm only for this command; the dataset and the camera client
+    # load scipy, trimesh, cv2 and pydantic-settings (~0.6 s)
     import zenoh
     from tqdm import tqdm
 
@@ -196,9 +199,9 @@ def _cmd_publish(args: argparse.Namespace) -> int:
 
 
 def _cmd_objects(args: argparse.Namespace) -> int:
-    from posefuse.clients.query import objects_http, objects_zenoh, table
+    from posefuse.clients.query import objects_http, objects_zenoh, table  # lazy: scipy (~0.25 s)
 
-    if args.zenoh:
+    if args.zenoh:  # lazy: zenoh (native) and pydantic-settings (~0.1 s) only for --zenoh
         import zenoh
 
         from posefuse.service.settings import zenoh_config
@@ -217,21 +220,17 @@ def _cmd_objects(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from posefuse.service.demo import run_demo
+    from posefuse.service.demo import run_demo  # lazy: scipy, cv2 (~0.3 s)
 
     settings = _settings(args)
     recording = args.recording
     if args.parts is not None and recording is None:
-        from pathlib import Path
-
         recording = Path(args.parts) / "demo.mcap"
         if not recording.is_file():
             raise PosefuseError(f"{recording}: missing; `posefuse onboard` writes it")
     recording = recording or DEFAULT_RECORDING
     settings = claim_http_port(settings)
     if not args.listen:  # a free loopback port: the demo needs no network and no other service
-        import socket
-
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]

@@ -15,12 +15,13 @@ from posefuse.service.resources import DEFAULT_CATALOG
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    try:
+    try:  # lazy: torch is the optional [train] extra
         import torch  # noqa: F401
     except ImportError:
         raise PosefuseError(
             'training needs torch: pip install -e ".[train]" (a CPU build, torch==2.13.0)'
         ) from None
+    # lazy: the catalog and the training modules load trimesh, scipy and cv2 (~0.6 s)
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.sim.train import TrainConfig, train
 

@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from posefuse.estimator.core.camera import Camera
-from posefuse.estimator.core.geometry import so3_exp
+from posefuse.estimator.core.geometry import invert, so3_exp
 from posefuse.estimator.core.objects import ObjectModel
 from posefuse.estimator.rotation.templates import TemplateBank
 from posefuse.estimator.translation.gaussian import MIN_DEPTH, prior_from_first_view
@@ -293,9 +293,7 @@ def tracks_for_nbv(estimator, max_components: int = 3) -> list[NbvTrack]:
         model = estimator.catalog[h.obj_id]
         if not np.isfinite(h.box_depth):
             continue
-        T_world_cam = np.eye(4)
-        T_world_cam[:3, :3] = h.T_cam_world[:3, :3].T
-        T_world_cam[:3, 3] = -h.T_cam_world[:3, :3].T @ h.T_cam_world[:3, 3]
+        T_world_cam = invert(h.T_cam_world)
         f = 0.5 * (h.K[0, 0] + h.K[1, 1])
         bbox = f * model.diameter / h.box_depth
         t0, P0 = prior_from_first_view(T_world_cam, h.K, h.uv, bbox, model.diameter)

@@ -20,6 +20,7 @@ import numpy as np
 
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.errors import DatasetError
+from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog, load_catalog
 
 
@@ -51,11 +52,7 @@ class BopView:
 
     @property
     def T_cam_world(self) -> np.ndarray:
-        T = np.eye(4)
-        R = self.T_world_cam[:3, :3]
-        T[:3, :3] = R.T
-        T[:3, 3] = -R.T @ self.T_world_cam[:3, 3]
-        return T
+        return invert(self.T_world_cam)
 
 
 def _read_json(path: Path) -> dict:
@@ -131,9 +128,7 @@ class BopScene:
             camera = Camera(K, width, height)
         except ValueError as exc:
             raise DatasetError(cam_path, f"{where}: {exc}") from None
-        T_world_cam = np.eye(4)
-        T_world_cam[:3, :3] = T_cam_world[:3, :3].T
-        T_world_cam[:3, 3] = -T_cam_world[:3, :3].T @ T_cam_world[:3, 3]
+        T_world_cam = invert(T_cam_world)
         gt_path = self.path / "scene_gt.json"
         gts_raw = self._gt_json.get(str(im_id), [])
         infos = self._gt_info_json.get(str(im_id), [])

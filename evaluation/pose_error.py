@@ -8,7 +8,7 @@ share one unit (metres inside posefuse, millimetres in BOP files).
 
 Poses are 4x4 ``T_cam_obj`` (``T_est`` the estimate, ``T_gt`` the truth); ``pts`` are the
 model's evaluation points in the object frame, (N, 3); ``symmetries`` are the (S, 4, 4)
-transformations of :func:`symmetry_transformations`, the identity among them.
+transformations of :func:`bop_symmetry_transformations`, the identity among them.
 
 - ADD: mean distance between corresponding points. Punishes a symmetric answer.
 - ADI (ADD-S): mean distance from each true point to the closest estimated point. Forgives
@@ -54,12 +54,17 @@ def _axis_rotation(angles: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return c * np.eye(3) + (1.0 - c) * np.outer(axis, axis) + s * cross
 
 
-def symmetry_transformations(
+def bop_symmetry_transformations(
     symmetries_discrete: np.ndarray,
     continuous_axes: list[tuple[np.ndarray, np.ndarray]] | tuple = (),
     max_sym_disc_step: float = MAX_SYM_DISC_STEP,
 ) -> np.ndarray:
     """All symmetry transformations, ``misc.get_symmetry_transformations``.
+
+    Two discretisations exist on purpose: this one is bop_toolkit's, to the bit, so the pose
+    errors are the benchmark's, while the method's own
+    (:func:`estimator.core.symmetry.symmetry_transforms`, for templates and matching) may step
+    differently without moving the measure.
 
     Args:
         symmetries_discrete: (D, 4, 4) discrete symmetries without the identity (BOP's
@@ -92,11 +97,11 @@ def symmetry_transformations(
 
 def eval_symmetries(model) -> np.ndarray:
     """(S, 4, 4) the symmetry transformations of ``model``'s pose errors (an
-    ``estimator.core.objects.ObjectModel``), metres: :func:`symmetry_transformations` with
+    ``estimator.core.objects.ObjectModel``), metres: :func:`bop_symmetry_transformations` with
     ``max_sym_disc_step = 0.01``, identity first; made once per model."""
     cached = _EVAL_SYMMETRIES.get(model)
     if cached is None:
-        cached = _EVAL_SYMMETRIES[model] = symmetry_transformations(
+        cached = _EVAL_SYMMETRIES[model] = bop_symmetry_transformations(
             model.symmetries_discrete,
             [(np.asarray(c.axis), np.asarray(c.offset)) for c in model.symmetries_continuous],
         )

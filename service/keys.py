@@ -1,4 +1,4 @@
-"""The key space of a cell (DESIGN section 4), built in one place."""
+"""The key space of a cell (docs/protocol.md), built in one place."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""Offline replay: recorded messages fed, in order, through the daemon's own decoding,
-synchronisation and worker function, without Zenoh. The same input gives the same output,
-bit for bit."""
+"""Offline replay: recorded messages fed, in log-time order, through the daemon's own intake
+(:mod:`service.intake`: the same key and size checks, queue, decoding and synchronisation) and
+worker function, without Zenoh. The same input gives the same output, bit for bit."""
 
 from __future__ import annotations
 
@@ -12,10 +12,10 @@ from pathlib import Path
 from posefuse.service.codec import (
     DecodeError,
     decode_reset,
-    decoders,
     encode_estimate,
     estimate_to_dict,
 )
+from posefuse.service.intake import Intake
 from posefuse.service.keys import Keys
 from posefuse.service.recording import Recorder
 from posefuse.service.settings import put_camera_message
@@ -52,40 +52,35 @@ def replay_offline(
     deadlines are judged in it, so a replay gives the same output on every machine.
     """
     keys = Keys(cell)
-    sync = sync or FrameSynchronizer()
-    decode = decoders(max_payload_bytes, max_image_pixels)
+    stats = worker.stats
+    intake = Intake(keys, sync or FrameSynchronizer(), stats, max_payload_bytes, max_image_pixels)
     result = ReplayResult()
     for log_time, key, payload in messages:
         if recorder is not None:
             recorder.write(key, payload, log_time)
-        worker.stats.count(worker.stats.received, key)
         if key == keys.reset:
+            stats.count(stats.received, key)
             try:
                 request = decode_reset(payload)
             except DecodeError:
-                worker.stats.count(worker.stats.decode_errors, key)
+                stats.count(stats.decode_errors, key)
                 continue
-            if worker.stats.processed:
+            if stats.processed:
                 result.segments.append([estimate_to_dict(e) for e in worker.snapshot()])
             try:
                 worker.reset(request.class_id, request.object_id)
             except (KeyError, ValueError):
                 pass
             continue
-        parsed = keys.parse_camera(key)
-        if parsed is None:
-            continue  # outputs and other cells' keys in a recording are not inputs
-        cam_id, kind = parsed
-        try:
-            msg = decode[kind](payload)
-        except DecodeError as exc:
-            worker.stats.count(worker.stats.decode_errors, key)
-            worker.stats.count(worker.stats.decode_reasons, f"{kind}_{exc.code}")
+        if keys.parse_camera(key) is None:
+            # outputs and other cells' keys in a recording are not inputs (counted by key, as
+            # recorded, not as the daemon's unknown keys)
+            stats.count(stats.received, key)
             continue
-        {"info": sync.add_info, "pose": sync.add_pose, "image": sync.add_image}[kind](
-            cam_id, msg, log_time
-        )
-        while (frame := sync.pop(log_time)) is not None:
+        intake.receive(key, payload, log_time)  # the log time stands for the arrival time
+        if not intake.drain():
+            continue  # refused (counted): the synchroniser is not asked for frames
+        while (frame := intake.pop(log_time)) is not None:
             for e in worker.process(frame):
                 result.published.append(estimate_to_dict(e))
                 if recorder is not None:

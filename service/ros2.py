@@ -43,7 +43,8 @@ import msgpack
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.service.codec import VERSION, DecodeError, compressed_image_size
+from posefuse.service.codec import VERSION, DecodeError
+from posefuse.service.image_checks import compressed_image_size
 
 LAYOUTS = ("off", "bridge", "rmw_zenoh")
 DETECTIONS = "vision_msgs/msg/Detection3DArray"

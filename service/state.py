@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from posefuse.estimator.core.errors import PosefuseError
+from posefuse.estimator.tracker.snapshot import legacy_class
 
 FORMAT = "posefuse-state/1"
 FILENAME = "estimator.state"
@@ -57,6 +58,20 @@ def catalog_fingerprint(catalog) -> str:
         h.update(np.ascontiguousarray(m.symmetries_discrete, np.float64).round(9).tobytes())
         h.update(repr(m.symmetries_continuous).encode())
     return h.hexdigest()
+
+
+class _StateUnpickler(pickle.Unpickler):
+    """Reads snapshots of this version and of the one before, whose classes lived in the
+    estimator's older modules (:func:`estimator.tracker.snapshot.legacy_class`)."""
+
+    def find_class(self, module: str, name: str):
+        try:
+            return super().find_class(module, name)
+        except (AttributeError, ModuleNotFoundError):
+            found = legacy_class(module, name)
+            if found is None:
+                raise
+            return found
 
 
 class StateStore:
@@ -114,7 +129,7 @@ class StateStore:
                     self.path, "saved for another catalog (fingerprint differs); set aside"
                 )
             try:
-                return pickle.load(f)
+                return _StateUnpickler(f).load()
             except Exception as exc:
                 self._set_aside()
                 raise StateError(

@@ -11,48 +11,10 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field
-
-import numpy as np
 
 from posefuse.estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate
+from posefuse.service.stats import Stats
 from posefuse.service.sync import SyncedFrame
-
-
-@dataclass
-class Stats:
-    """Counters of the daemon. Per-key tables hold at most ``max_keys`` keys, the most recently
-    seen: a key that leaves adds its count to ``other``, so a table's total stays exact (junk
-    keys must not grow memory, nor push out for good the keys of the cameras that work)."""
-
-    received: dict[str, int] = field(default_factory=dict)  # per key
-    decode_errors: dict[str, int] = field(default_factory=dict)  # per key
-    decode_reasons: dict[str, int] = field(default_factory=dict)  # per DecodeError code
-    processed: int = 0
-    errors: int = 0
-    latencies_ms: deque = field(default_factory=lambda: deque(maxlen=1000))
-    max_keys: int = 64
-
-    def count(self, table: dict[str, int], key: str) -> None:
-        if key in table:  # re-inserted: a dict keeps insertion order, so this is recency
-            table[key] = table.pop(key) + 1
-            return
-        while len(table) >= self.max_keys:
-            oldest = next((k for k in table if k != "other"), None)
-            if oldest is None:
-                break
-            n = table.pop(oldest)
-            table["other"] = table.pop("other", 0) + n
-        if len(table) >= self.max_keys:  # max_keys 1: only "other" is left
-            key = "other"
-        table[key] = table.get(key, 0) + 1
-
-    def latency(self) -> dict[str, float | None]:
-        if not self.latencies_ms:
-            return {"p50_ms": None, "p95_ms": None}
-        a = np.array(self.latencies_ms)
-        return {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95))}
 
 
 class EstimatorWorker:

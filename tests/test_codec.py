@@ -111,7 +111,7 @@ def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
     import cv2
 
     from posefuse.bench.bombs import image_message, jpeg_bomb, png_bomb
-    from posefuse.service.codec import compressed_image_size
+    from posefuse.service.image_checks import compressed_image_size
 
     decoded = []
     real_imdecode = cv2.imdecode
@@ -151,7 +151,7 @@ def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
 def test_compressed_image_size_reads_real_headers():
     import cv2
 
-    from posefuse.service.codec import compressed_image_size
+    from posefuse.service.image_checks import compressed_image_size
 
     image = np.zeros((37, 53, 3), np.uint8)
     for ext, encoding in ((".png", "png"), (".jpg", "jpeg")):
@@ -226,7 +226,7 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
     import cv2
 
     from posefuse.bench.bombs import image_message, png_many_chunks, progressive_scan_bomb
-    from posefuse.service.codec import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
+    from posefuse.service.image_checks import MAX_JPEG_SCANS, MAX_JPEG_SEGMENTS
 
     def refused(stream, encoding, size):
         with pytest.raises(DecodeError) as info:
@@ -256,7 +256,7 @@ def test_streams_no_camera_writes_are_refused_by_their_structure_before_decoding
 def test_what_cameras_and_encoders_write_passes_the_structure_checks():
     import cv2
 
-    from posefuse.service.codec import check_decode_cost
+    from posefuse.service.image_checks import check_decode_cost
 
     rng = np.random.default_rng(1)
     for h, w in ((1, 1), (37, 53), (720, 1280), (2160, 3840)):

@@ -49,7 +49,7 @@ def _worst_differences(ref: dict) -> dict:
         # the file prints float32 mesh vertices to 7 digits; float32 gives back the exact ones
         pts = np.array(obj["pts"], dtype=np.float32).astype(np.float64)
         info = obj["models_info"]
-        syms = pose_error.symmetry_transformations(
+        syms = pose_error.bop_symmetry_transformations(
             np.array(info.get("symmetries_discrete", [])).reshape(-1, 4, 4),
             [
                 (np.array(c["axis"]), np.array(c["offset"]))
@@ -159,7 +159,7 @@ def test_add_sym_forgives_symmetries_and_nothing_else(rotvec, k):
     """A square's 4-fold symmetry: ADD-sym and MSSD are 0 at any symmetric equivalent of the
     truth, ADD is not; ADD-sym is never above ADD nor above MSSD."""
     square = np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0.3, 0.2, 0.5]], float)
-    group = pose_error.symmetry_transformations(
+    group = pose_error.bop_symmetry_transformations(
         np.stack(
             [_T(Rotation.from_euler("z", 90 * j, degrees=True).as_matrix()) for j in (1, 2, 3)]
         )
@@ -197,7 +197,7 @@ def test_project_points_are_pixels_of_a_pinhole_batch():
 def test_continuous_symmetry_steps_as_bop():
     """ceil(pi / 0.01) = 315 rotations about an axis through its offset, identity first."""
     axis, offset = np.array([0.0, 0.0, 2.0]), np.array([0.01, -0.02, 0.0])
-    syms = pose_error.symmetry_transformations(np.zeros((0, 4, 4)), [(axis, offset)])
+    syms = pose_error.bop_symmetry_transformations(np.zeros((0, 4, 4)), [(axis, offset)])
     assert syms.shape == (315, 4, 4)
     np.testing.assert_allclose(syms[0], np.eye(4), atol=1e-15)
     np.testing.assert_allclose(

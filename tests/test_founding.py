@@ -5,6 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from posefuse.estimator.core.geometry import invert, make_transform
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.tracker import Frame, MultiViewEstimator
 from posefuse.estimator.translation.founding import (
@@ -31,10 +32,7 @@ def _T_cam_world(cam_x: float, target=(0.0, 0.0, 0.0), height=0.6) -> np.ndarray
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R_world_cam = np.stack([x, y, z], 1)
-    T = np.eye(4)
-    T[:3, :3] = R_world_cam.T
-    T[:3, 3] = -R_world_cam.T @ eye
-    return T
+    return invert(make_transform(R_world_cam, eye))
 
 
 def _project(T_cam_world, p):

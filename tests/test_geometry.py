@@ -1,5 +1,6 @@
-"""Property tests for estimator.core.geometry: group identities, stability near 0 and pi, analytic
-Jacobians against central differences, batch shapes and input validation."""
+"""Property tests for estimator.core.geometry and estimator.core.projection: group identities,
+stability near 0 and pi, analytic Jacobians against central differences, batch shapes and input
+validation."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from posefuse.estimator.core import geometry as g
+from posefuse.estimator.core import projection as pj
 
 PI = np.pi
 FAST = settings(deadline=None, max_examples=60)
@@ -267,28 +269,28 @@ def test_jacobians_continuous_across_taylor_switch(angle):
 )
 def test_project_jacobian_numeric(x, y, z):
     p = np.array([x, y, z])
-    num = _central_diff(lambda q: g.project(q, K), p, 1e-7 * max(z, 1.0))
-    J = g.project_jacobian(p, K)
+    num = _central_diff(lambda q: pj.project(q, K), p, 1e-7 * max(z, 1.0))
+    J = pj.project_jacobian(p, K)
     scale = np.abs(J).max()
     np.testing.assert_allclose(J, num, rtol=0, atol=1e-6 * scale)
 
 
 def test_project_values_and_principal_point():
-    np.testing.assert_allclose(g.project([0.0, 0.0, 2.0], K), [320.0, 240.0])
+    np.testing.assert_allclose(pj.project([0.0, 0.0, 2.0], K), [320.0, 240.0])
     p = np.array([0.1, -0.2, 2.0])
     expected = (K @ p)[:2] / p[2]
-    np.testing.assert_allclose(g.project(p, K), expected, rtol=1e-15)
+    np.testing.assert_allclose(pj.project(p, K), expected, rtol=1e-15)
 
 
 def test_project_behind_camera_and_in_front():
     pts = np.array([[0.1, 0.2, 1.0], [0.1, 0.2, -1.0], [0.0, 0.0, 0.0], [0, 0, np.nan]])
     with np.errstate(all="raise"):
-        uv = g.project(pts, K)
-        g.project_jacobian(pts, K)
+        uv = pj.project(pts, K)
+        pj.project_jacobian(pts, K)
     assert uv.shape == (4, 2)
-    np.testing.assert_array_equal(g.in_front(pts), [True, False, False, False])
-    assert not g.in_front([0.0, 0.0, 1e-7])
-    assert g.in_front([0.0, 0.0, 1e-7], min_z=0.0)
+    np.testing.assert_array_equal(pj.in_front(pts), [True, False, False, False])
+    assert not pj.in_front([0.0, 0.0, 1e-7])
+    assert pj.in_front([0.0, 0.0, 1e-7], min_z=0.0)
 
 
 # --------------------------------------------------------------------------- SE(3)
@@ -330,6 +332,24 @@ def test_compose_invert_transform_points(T_a_b, T_b_c, p_c):
     )
     np.testing.assert_allclose(p_a, (T_a_c @ np.append(p_c, 1.0))[:3], atol=1e-12)
     np.testing.assert_allclose(g.transform_points(g.invert(T_a_c), p_a), p_c, atol=1e-12)
+
+
+def test_invert_has_the_bits_of_the_inverse_written_by_hand():
+    """invert is ``R.T`` and ``-R.T @ t`` as the callers it replaced wrote them, to the bit and to
+    the sign of a zero (an axis-aligned camera above the origin has exact zeros in -R^T t)."""
+    rng = np.random.default_rng(3)
+    flips = [np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.eye(3)]
+    rotations = flips + list(Rotation.random(200, rng=rng).as_matrix())
+    moves = [np.zeros(3), np.array([0.0, 0.0, 1.2]), np.array([-0.0, 0.3, 0.0])]
+    for R in rotations:
+        for t in moves + [rng.normal(size=3)]:
+            T = g.make_transform(R, t)
+            by_hand = np.eye(4)
+            by_hand[:3, :3] = T[:3, :3].T
+            by_hand[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+            assert g.invert(T).tobytes() == by_hand.tobytes()
+    batch = np.stack([g.make_transform(R, moves[1]) for R in rotations])
+    assert g.invert(batch).tobytes() == np.stack([g.invert(T) for T in batch]).tobytes()
 
 
 def test_frame_naming_example():
@@ -426,9 +446,9 @@ def test_batched_functions_match_loops(batch):
         g.compose(T, g.invert(T)), np.broadcast_to(np.eye(4), T.shape), atol=1e-12
     )
     pts = rng.normal(size=batch + (3,)) + [0.0, 0.0, 3.0]
-    np.testing.assert_allclose(g.project(pts, K), _loop(lambda p: g.project(p, K), pts, 1))
-    assert g.project_jacobian(pts, K).shape == batch + (2, 3)
-    assert g.in_front(pts).shape == batch
+    np.testing.assert_allclose(pj.project(pts, K), _loop(lambda p: pj.project(p, K), pts, 1))
+    assert pj.project_jacobian(pts, K).shape == batch + (2, 3)
+    assert pj.in_front(pts).shape == batch
 
 
 def test_transform_points_shapes():
@@ -475,12 +495,12 @@ def test_transform_points_shapes():
         (g.invert, (np.eye(3),), "invert: T_a_b"),
         (g.transform_points, (np.eye(4), np.zeros((5, 4))), "transform_points: pts_b"),
         (g.transform_points, (np.eye(3), np.zeros((5, 3))), "transform_points: T_a_b"),
-        (g.project, (np.zeros((5, 2)), K), "project: pts_cam"),
-        (g.project, (np.ones(3), K[:2]), "project: K"),
-        (g.project, (np.ones(3), np.eye(3) * 2), "project: the last row of K"),
-        (g.project_jacobian, (np.ones(4), K), "project_jacobian: pts_cam"),
-        (g.project_jacobian, (np.ones(3), K.ravel()), "project_jacobian: K"),
-        (g.in_front, (np.ones(2),), "in_front: pts_cam"),
+        (pj.project, (np.zeros((5, 2)), K), "project: pts_cam"),
+        (pj.project, (np.ones(3), K[:2]), "project: K"),
+        (pj.project, (np.ones(3), np.eye(3) * 2), "project: the last row of K"),
+        (pj.project_jacobian, (np.ones(4), K), "project_jacobian: pts_cam"),
+        (pj.project_jacobian, (np.ones(3), K.ravel()), "project_jacobian: K"),
+        (pj.in_front, (np.ones(2),), "in_front: pts_cam"),
         (g.rotation_angle, (np.eye(4),), "rotation_angle: R"),
         (g.is_rotation, (np.zeros(3),), "is_rotation"),
     ],
@@ -506,7 +526,7 @@ def test_in_front_and_is_rotation_at_their_bounds():
     """A point exactly at min_z is not in front (strictly beyond); an exact rotation is one at
     atol = 0 (the bounds are inclusive there)."""
     pts = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5 + 1e-12], [0.0, 0.0, np.nan]])
-    np.testing.assert_array_equal(g.in_front(pts, min_z=0.5), [False, True, False])
+    np.testing.assert_array_equal(pj.in_front(pts, min_z=0.5), [False, True, False])
     assert g.is_rotation(np.eye(3), atol=0.0)
     assert g.is_rotation(np.diag([1.0, -1.0, -1.0]), atol=0.0)
 
@@ -518,7 +538,7 @@ def test_project_of_a_point_at_depth_zero_warns_nothing():
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        uv = g.project(np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]), K)
+        uv = pj.project(np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.0]]), K)
     assert not np.isfinite(uv).all()
 
 

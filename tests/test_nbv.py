@@ -18,8 +18,9 @@ from posefuse.estimator.nbv import (
     score_candidates,
     tracks_for_nbv,
 )
-from posefuse.estimator.rotation.matching import RotationMatcher, crop_roi, ray_correction
+from posefuse.estimator.rotation.matching import RotationMatcher, ray_correction
 from posefuse.estimator.rotation.mixture import closest_equivalent
+from posefuse.estimator.rotation.recrop import crop_roi
 from posefuse.estimator.rotation.render import DirectionalLight, Lighting, Renderer
 from posefuse.estimator.rotation.templates import TEMPLATE_LIGHTS_CAM, TEMPLATE_MATERIAL
 from posefuse.estimator.translation.gaussian import prior_from_first_view

@@ -14,8 +14,12 @@ from test_verification import CONFIG, _edges, _tube
 from posefuse.estimator.core.geometry import invert, so3_exp
 from posefuse.estimator.nbv import look_at
 from posefuse.estimator.rotation.mixture import closest_equivalent
-from posefuse.estimator.verification.edges import EdgeView, ModelEdges
+from posefuse.estimator.verification.edge_maps import EdgeView
+from posefuse.estimator.verification.model_edges import ModelEdges
 from posefuse.estimator.verification.refinement import (
+    EdgeScoring,
+    PoseGuess,
+    PosePrior,
     RefineConfig,
     _linearize,
     _ViewStack,
@@ -39,15 +43,9 @@ def _refine_from(model, edges, views, R0, t0, config, **kwargs):
     return refine_pose(
         edges,
         views,
-        R0,
-        t0,
-        t0,
-        np.eye(3) * (0.1 * model.diameter) ** 2,
-        np.eye(3) * np.deg2rad(20.0) ** 2,
-        CONFIG.edges.truncate_px,
-        CONFIG.edges.bins,
-        CONFIG.crease_weight,
-        CONFIG.mask_weight,
+        PoseGuess(R0, t0),
+        PosePrior(t0, np.eye(3) * (0.1 * model.diameter) ** 2, np.eye(3) * np.deg2rad(20.0) ** 2),
+        EdgeScoring.of(CONFIG),
         config,
         **kwargs,
     )
@@ -323,7 +321,7 @@ def test_a_warm_start_ends_where_a_cold_one_does_in_fewer_steps_and_a_bad_one_is
 
     _, (R_true, t_true), _, cold = _tube_refinement(robi_catalog, RefineConfig())
     *_, warm = _tube_refinement(
-        robi_catalog, RefineConfig(), R_init=cold.R_world_obj, t_init=cold.t_world_obj
+        robi_catalog, RefineConfig(), warm=PoseGuess(cold.R_world_obj, cold.t_world_obj)
     )
     assert warm.accepted and warm.iterations < cold.iterations
     assert rotation_angle(warm.R_world_obj @ cold.R_world_obj.T) < np.deg2rad(0.5)
@@ -331,7 +329,7 @@ def test_a_warm_start_ends_where_a_cold_one_does_in_fewer_steps_and_a_bad_one_is
     # a warm start that costs more than the start (30 degrees off the other way) is not taken:
     # the result is the cold run's, step for step
     bad = so3_exp(np.deg2rad(30.0) * np.array([0.0, 0.0, 1.0])) @ R_true
-    *_, ignored = _tube_refinement(robi_catalog, RefineConfig(), R_init=bad, t_init=t_true)
+    *_, ignored = _tube_refinement(robi_catalog, RefineConfig(), warm=PoseGuess(bad, t_true))
     np.testing.assert_allclose(ignored.R_world_obj, cold.R_world_obj, atol=1e-12)
     assert ignored.iterations == cold.iterations and ignored.cost == cold.cost
 
@@ -344,7 +342,7 @@ def test_refinement_cost_is_the_weighted_robust_chamfer_read_sample_by_sample():
     fully in the cost."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.verification.edges import pose_edges
+    from posefuse.estimator.verification.model_edges import pose_edges
 
     rng = np.random.default_rng(5)
     P, bins, truncate = 50, 8, 10.0
@@ -449,7 +447,12 @@ def test_without_edges_to_read_the_priors_alone_decide_and_give_the_covariance()
     V = so3_exp(np.array([0.3, 0.1, -0.2]))
     cov_R = V @ np.diag(np.deg2rad([1.0, 10.0, 20.0]) ** 2) @ V.T  # 1 degree: below the floor
     out = refine_pose(
-        edges, blind, R0, t0, t_prior, cov_t, cov_R, 10.0, 8, 0.5, 1.5, RefineConfig()
+        edges,
+        blind,
+        PoseGuess(R0, t0),
+        PosePrior(t_prior, cov_t, cov_R),
+        EdgeScoring(truncate_px=10.0, bins=8, crease_weight=0.5, mask_weight=1.5),
+        RefineConfig(),
     )
     assert out.accepted and out.cost < out.cost_start
     # within 1% of the way (the damping and the 0.2% cost tolerance stop it just short)

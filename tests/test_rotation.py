@@ -6,12 +6,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posefuse.estimator.core.geometry import random_rotations, rotation_angle
-from posefuse.estimator.rotation.matching import (
-    RotationMatcher,
-    _best_first,
-    crop_roi,
-    ray_correction,
-)
+from posefuse.estimator.rotation.matching import RotationMatcher, _best_first, ray_correction
+from posefuse.estimator.rotation.recrop import crop_roi
 from posefuse.estimator.rotation.render import DirectionalLight, Lighting, Renderer
 from posefuse.estimator.rotation.templates import (
     TEMPLATE_LIGHTS_CAM,

@@ -1,8 +1,8 @@
 """Verification across views and refinement of the full pose, on renders
-(estimator.verification.edges, estimator.verification.verify, estimator.verification.refinement): a
-screw flipped end over end is told apart from the truth by a second view but not by the first,
-refinement converges back from a 10 degree / 0.05 d perturbation, and the symmetric equivalents of
-the truth score alike."""
+(estimator.verification.model_edges and edge_maps, estimator.verification.verify,
+estimator.verification.refinement): a screw flipped end over end is told apart from the truth by
+a second view but not by the first, refinement converges back from a 10 degree / 0.05 d
+perturbation, and the symmetric equivalents of the truth score alike."""
 
 from __future__ import annotations
 
@@ -20,13 +20,8 @@ from posefuse.estimator.core.geometry import invert, make_transform, rotation_an
 from posefuse.estimator.nbv import look_at
 from posefuse.estimator.rotation.mixture import closest_equivalent
 from posefuse.estimator.rotation.render import CHROME, DEFAULT_LIGHTING, MATTE, METAL, Renderer
-from posefuse.estimator.verification.edges import (
-    EdgeConfig,
-    edge_view,
-    model_edges,
-    pose_edges,
-    silhouette_misses,
-)
+from posefuse.estimator.verification.edge_maps import EdgeConfig, edge_view
+from posefuse.estimator.verification.model_edges import model_edges, pose_edges, silhouette_misses
 from posefuse.estimator.verification.verify import (
     ScoreCache,
     VerificationConfig,
@@ -355,8 +350,8 @@ def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
 ):
     """A camera at rest (the same pose, a later stamp) adds no edge maps and no verification;
     the verdict and the published pose stay as they were."""
-    from posefuse.estimator import tracker as tracker_module
     from posefuse.estimator.tracker import Frame
+    from posefuse.estimator.tracker import pose_stage as tracker_module
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 
@@ -393,8 +388,8 @@ def test_a_settled_track_is_verified_again_only_when_a_new_view_disagrees(
     margin no view can meet verifies as often as no check."""
     import dataclasses
 
-    from posefuse.estimator import tracker as tracker_module
     from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.tracker import pose_stage as tracker_module
     from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(small_dataset_root)
@@ -459,7 +454,7 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
     kept = 0
     for track in refined:
         previous = track.refined
-        estimator._verify(track, new_views=False)
+        estimator.poses.verify(track, new_views=False)
         lead = track.verdict.R_world_obj[track.verdict.best]
         # near: a move from today's translation that a refinement would accept
         near = accepts_translation(
@@ -471,12 +466,12 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
         holds = rotation_angle(previous.R_world_obj @ lead.T) <= accept and near
         assert (track.refined is previous) == holds
         kept += holds
-        estimator._verify(track, new_views=True)
+        estimator.poses.verify(track, new_views=True)
         assert track.refined is not previous and track.refined.accepted
         previous = track.refined
         diameter = dataset.catalog[track.obj_id].diameter
         track.refined_t_prior = track.refined_t_prior + np.array([0.0, 0.0, 0.06 * diameter])
-        estimator._verify(track, new_views=False)
+        estimator.poses.verify(track, new_views=False)
         assert track.refined is not previous
     assert kept > 0
     off = TrackerConfig(
@@ -486,7 +481,7 @@ def test_a_mixture_that_changes_keeps_its_refinement_while_the_winner_holds_it(
     for track in estimator.tracks.values():
         if track.refined is not None and track.refined.accepted:
             previous = track.refined
-            estimator._verify(track, new_views=False)
+            estimator.poses.verify(track, new_views=False)
             assert track.refined is not previous
 
 
@@ -517,9 +512,7 @@ def test_a_viewpoint_is_new_when_it_turns_or_moves_past_the_bounds(angle, ratio,
         x = np.cross([0.3, 1.0, 0.1], z)
         x /= np.linalg.norm(x)
         R_world_cam = np.stack([x, np.cross(z, x), z], 1) @ so3_exp(np.array([0, 0, roll_angle]))
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R_world_cam.T, -R_world_cam.T @ eye
-        return T  # T_cam_world
+        return invert(make_transform(R_world_cam, eye))  # T_cam_world
 
     kept = camera(eye0, 0.0)[None]
     new = is_new_viewpoint(kept, camera(eye1, roll), t_obj, 5.0, 0.15)
@@ -612,7 +605,7 @@ def _random_poses(model, n, seed):
 
 
 def test_only_the_samples_that_show_are_projected_as_all_would_be(robi_catalog):
-    from posefuse.estimator.verification.edges import project_edges, project_shown
+    from posefuse.estimator.verification.model_edges import project_edges, project_shown
 
     model = _model(robi_catalog, "eye_bolt")
     edges = _edges(model)
@@ -747,7 +740,7 @@ def test_the_viewpoint_directions_cover_the_sphere_evenly():
     (the table's answer comes from at most that far)."""
     from scipy.spatial import cKDTree
 
-    from posefuse.estimator.verification.edges import fibonacci_sphere
+    from posefuse.estimator.verification.model_edges import fibonacci_sphere
 
     directions = fibonacci_sphere(4096)
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-12)
@@ -779,7 +772,7 @@ def test_the_occlusion_table_hides_nothing_of_a_convex_part():
 
 
 def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catalog):
-    from posefuse.estimator.verification.edges import OcclusionTable
+    from posefuse.estimator.verification.model_edges import OcclusionTable
 
     model = _model(robi_catalog, "eye_bolt")
     edges = _edges(model)
@@ -828,7 +821,7 @@ def test_the_occlusion_table_answers_alike_in_any_order_and_when_full(robi_catal
 def test_edge_maps_read_only_the_part_of_the_mask_they_cover():
     import cv2
 
-    from posefuse.estimator.verification.edges import _covered
+    from posefuse.estimator.verification.edge_maps import _covered
 
     rng = np.random.default_rng(6)
     H, W, L = 120, 200, 32
@@ -880,7 +873,8 @@ def test_verify_asks_the_heaviest_components_and_reweights_them_by_the_views(rob
 def _dense_scores(edges, views, R_world_obj, t_world_obj, config):
     """score_hypotheses the long way, a reference: every sample of every pose projected and
     read, pose by pose and view by view, each term masked to the samples it counts."""
-    from posefuse.estimator.verification.edges import project_edges, sample_maps
+    from posefuse.estimator.verification.edge_maps import sample_maps
+    from posefuse.estimator.verification.model_edges import project_edges
 
     ec = config.edges
     cost = np.zeros((len(R_world_obj), len(views)))
@@ -951,7 +945,7 @@ def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
     camera and one away (the contour) or both to it (shown nowhere)."""
     from dataclasses import replace
 
-    from posefuse.estimator.verification.edges import ModelEdges
+    from posefuse.estimator.verification.model_edges import ModelEdges
 
     ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
@@ -991,7 +985,7 @@ def test_a_view_with_too_few_edge_samples_says_it_knows_nothing():
 
 def _flat_view(T_cam_world):
     """An EdgeView whose chamfer maps read 2.5 px everywhere and whose mask map reads 5 px."""
-    from posefuse.estimator.verification.edges import EdgeView
+    from posefuse.estimator.verification.edge_maps import EdgeView
 
     L, ec = CONFIG.edges.roi_size, CONFIG.edges
     K_roi = np.array([[600.0, 0, (L - 1) / 2], [0, 600.0, (L - 1) / 2], [0, 0, 1]])
@@ -1075,7 +1069,7 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
     """Eight views in which no hypothesis shows an edge: every cost is "no information" (3 with
     the default weights), the views cannot choose, and the weights are the prior's, normalised
     (tempering by the cost above the best one, not by the cost itself, which would underflow)."""
-    from posefuse.estimator.verification.edges import ModelEdges
+    from posefuse.estimator.verification.model_edges import ModelEdges
 
     ring = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     points = 0.02 * np.column_stack([np.cos(ring), np.sin(ring), np.zeros(40)])
@@ -1101,7 +1095,7 @@ def test_weights_stay_a_distribution_when_every_view_says_nothing():
 def test_the_region_of_interest_is_centred_on_the_part_at_a_fixed_scale():
     """edge_view's RoI intrinsics put the projected origin at the RoI's center and make the
     part's diameter span diameter_px, whatever the camera (skewed, fx != fy, off-center)."""
-    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
 
     K = np.array([[910.0, 3.0, 655.0], [0.0, 870.0, 350.0], [0.0, 0.0, 1.0]])
     image = np.zeros((720, 1280, 3), np.uint8)
@@ -1123,7 +1117,7 @@ def test_the_region_of_interest_is_centred_on_the_part_at_a_fixed_scale():
 def test_projected_edges_are_where_the_camera_puts_the_points():
     """project_edges against the pinhole model applied point by point (a skewed camera), and the
     projected direction against the difference of two projected points along the edge."""
-    from posefuse.estimator.verification.edges import project_edges
+    from posefuse.estimator.verification.model_edges import project_edges
 
     rng = np.random.default_rng(9)
     K = np.array([[800.0, 12.0, 300.0], [0.0, 760.0, 260.0], [0.0, 0.0, 1.0]])
@@ -1147,7 +1141,7 @@ def test_projected_edges_are_where_the_camera_puts_the_points():
     "bad", [dict(roi_size=15), dict(bins=1), dict(truncate_px=0.0), dict(truncate_px=-1.0)]
 )
 def test_an_edge_config_that_cannot_work_is_refused(bad):
-    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
 
     with pytest.raises(ValueError, match="invalid edge config"):
         EdgeConfig(**bad)
@@ -1160,7 +1154,7 @@ def test_the_directional_chamfer_of_a_rectangle():
     horizontal bin reads 3 px, and each bin of orientation further away adds 2.5 px (the
     directional chamfer), up to the truncation; the mask map reads the distance to the mask's
     boundary."""
-    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
 
     config = EdgeConfig()
     image = np.zeros((200, 200, 3), np.uint8)
@@ -1196,7 +1190,7 @@ def test_the_directional_chamfer_of_a_rectangle():
 def test_edge_maps_see_no_edge_where_the_image_ends():
     """A plain grey image, the part near its corner: the RoI reaches past the image, which
     repeats its border there, so no edge appears (every map reads the truncation)."""
-    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
 
     config = EdgeConfig()
     image = np.full((120, 160, 3), 128, np.uint8)
@@ -1226,7 +1220,7 @@ def test_sample_maps_is_bilinear_with_its_gradient_for_any_bytes():
     neighbouring bytes fall as often as they rise (uint8 differences must not wrap)."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.verification.edges import sample_maps
+    from posefuse.estimator.verification.edge_maps import sample_maps
 
     rng = np.random.default_rng(3)
     maps = rng.integers(0, 256, size=(3, 12, 16), dtype=np.uint8)
@@ -1263,7 +1257,7 @@ def test_sample_maps_reads_its_edges_exactly_and_nothing_past_them():
     a pixel further, or a pixel before the first, reads the truncation with no gradient."""
     from scipy.ndimage import map_coordinates
 
-    from posefuse.estimator.verification.edges import sample_maps
+    from posefuse.estimator.verification.edge_maps import sample_maps
 
     rng = np.random.default_rng(5)
     maps = rng.integers(0, 256, size=(2, 10, 14), dtype=np.uint8)
@@ -1313,7 +1307,8 @@ def test_model_edges_lie_evenly_along_the_sharp_edges_laid_end_to_end(max_points
     unit direction, its two faces' normals, and the box's right angles marked as creases."""
     import trimesh
 
-    from posefuse.estimator.verification.edges import EdgeConfig, model_edges
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
+    from posefuse.estimator.verification.model_edges import model_edges
 
     mesh = trimesh.creation.box(extents=(0.1, 0.07, 0.03))
     diameter = 0.123
@@ -1348,7 +1343,8 @@ def test_model_edges_keep_a_fold_of_one_and_a_half_degrees_and_no_flat_one():
     (and not a crease); folded by 0.5 degrees, or flat, they give no samples at all."""
     import trimesh
 
-    from posefuse.estimator.verification.edges import EdgeConfig, model_edges, pose_edges
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
+    from posefuse.estimator.verification.model_edges import model_edges, pose_edges
 
     def fold(deg):
         a = np.deg2rad(deg)
@@ -1370,7 +1366,7 @@ def test_edge_orientation_bins_follow_a_circle():
     """A bright disc seen 1:1: where the circle's tangent lies at a bin's centre, the edge pixel
     on that ray is in that bin (the gradient's direction from first derivatives in x and y,
     signed: every orientation, not only the axis-aligned ones of a rectangle)."""
-    from posefuse.estimator.verification.edges import EdgeConfig
+    from posefuse.estimator.verification.edge_maps import EdgeConfig
 
     config = EdgeConfig()
     image = np.zeros((200, 200, 3), np.uint8)

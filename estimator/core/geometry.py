@@ -1,4 +1,4 @@
-"""Lie-group (SO(3), SE(3)) and pinhole-projection math on numpy arrays.
+"""Lie-group (SO(3), SE(3)) math on numpy arrays; pinhole projection is in :mod:`.projection`.
 
 Every function is vectorised over leading batch dimensions written ``...``; batch dimensions
 of several arguments broadcast against each other like numpy's. Inputs are converted to
@@ -14,8 +14,6 @@ Conventions (see ``docs/conventions.md``):
   ``J_r(w) == J_l(-w)``.
 - se(3) tangent vectors are ``xi = [rho, phi]``: translation part first (3), rotation part
   second (3), the same order as the project's 6x6 covariances (x, y, z, rot_x, rot_y, rot_z).
-- Pixels ``uv`` follow OpenCV: (0, 0) is the centre of the top-left pixel, u right, v down;
-  camera points are in the optical frame (x right, y down, z forward).
 
 The exponential, logarithm and Jacobians are explicit numpy with small-angle Taylor branches
 (and, for the logarithm, a near-pi branch) so that they are accurate to machine precision at
@@ -32,12 +30,9 @@ from scipy.spatial.transform import Rotation
 __all__ = [
     "compose",
     "hat",
-    "in_front",
     "invert",
     "is_rotation",
     "make_transform",
-    "project",
-    "project_jacobian",
     "random_rotations",
     "rotation_angle",
     "se3_exp",
@@ -404,6 +399,9 @@ def compose(T_a_b: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
 def invert(T_a_b: np.ndarray) -> np.ndarray:
     """``T_b_a`` from ``T_a_b`` using ``R^T`` and ``-R^T t`` (assumes a rigid transform).
 
+    ``-R^T t`` is computed as ``(-R^T) @ t``, the product of the negated matrix, as written by
+    hand (``-R.T @ t``): the same bits, down to the sign of a zero.
+
     Args:
         T_a_b: (..., 4, 4).
 
@@ -412,7 +410,7 @@ def invert(T_a_b: np.ndarray) -> np.ndarray:
     """
     T_a_b = _as_array(T_a_b, (4, 4), "invert: T_a_b")
     R_b_a = np.swapaxes(T_a_b[..., :3, :3], -1, -2)
-    t_b_a = -_mv(R_b_a, T_a_b[..., :3, 3])
+    t_b_a = _mv(-R_b_a, T_a_b[..., :3, 3])
     return make_transform(R_b_a, t_b_a)
 
 
@@ -470,78 +468,6 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     phi = so3_log(T[..., :3, :3])
     rho = _mv(so3_left_jacobian_inv(phi), T[..., :3, 3])
     return np.concatenate([rho, phi], axis=-1)
-
-
-# --------------------------------------------------------------------------- projection
-def _check_K(K: np.ndarray, name: str) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3):
-        raise ValueError(f"{name}: K must have shape (3, 3), got {K.shape}")
-    if not np.array_equal(K[2], [0.0, 0.0, 1.0]):
-        raise ValueError(f"{name}: the last row of K must be [0, 0, 1], got {K[2]}")
-    return K
-
-
-def in_front(pts_cam: np.ndarray, min_z: float = 1e-6) -> np.ndarray:
-    """Whether camera-frame points are in front of the camera (``z > min_z``, finite).
-
-    Use it to mask points before or after :func:`project`, which does not check depth.
-
-    Args:
-        pts_cam: (..., 3) points in the camera optical frame, metres.
-        min_z: smallest accepted depth, metres.
-
-    Returns:
-        (...) bool.
-    """
-    pts_cam = _as_array(pts_cam, (3,), "in_front: pts_cam")
-    return np.all(np.isfinite(pts_cam), axis=-1) & (pts_cam[..., 2] > min_z)
-
-
-def project(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pinhole projection without distortion: ``uv = K[:2] @ [x/z, y/z, 1]``.
-
-    Computes the formula regardless of depth: a point behind the camera (z < 0) gets the
-    pixel of its mirror image and z == 0 gives inf/nan, without warnings. Check depth with
-    :func:`in_front`.
-
-    Args:
-        pts_cam: (..., 3) points in the camera optical frame, metres.
-        K: (3, 3) intrinsics ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, pixels.
-
-    Returns:
-        (..., 2) pixel coordinates ``uv`` (OpenCV: (0, 0) is the centre of the top-left pixel).
-    """
-    pts_cam = _as_array(pts_cam, (3,), "project: pts_cam")
-    K = _check_K(K, "project")
-    with np.errstate(divide="ignore", invalid="ignore"):  # z = 0 gives inf / nan, quietly
-        xy = pts_cam[..., :2] / pts_cam[..., 2:3]
-        return xy @ K[:2, :2].T + K[:2, 2]
-
-
-def project_jacobian(pts_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Jacobian of :func:`project` with respect to the camera-frame point.
-
-    ``d uv / d p = K[:2, :2] @ [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]``.
-
-    Args:
-        pts_cam: (..., 3) points in the camera optical frame, metres.
-        K: (3, 3) intrinsics.
-
-    Returns:
-        (..., 2, 3), pixels per metre.
-    """
-    pts_cam = _as_array(pts_cam, (3,), "project_jacobian: pts_cam")
-    K = _check_K(K, "project_jacobian")
-    x, y, z = pts_cam[..., 0], pts_cam[..., 1], pts_cam[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = 1.0 / z
-        d = np.zeros(pts_cam.shape[:-1] + (2, 3))
-        d[..., 0, 0] = inv_z
-        d[..., 1, 1] = inv_z
-        d[..., 0, 2] = -x * inv_z * inv_z
-        d[..., 1, 2] = -y * inv_z * inv_z
-        return np.matmul(K[:2, :2], d)
 
 
 # --------------------------------------------------------------------------- utilities

@@ -479,6 +479,11 @@ def symmetry_transforms(
     As BOP's ``get_symmetry_transformations``: every discrete symmetry (and the identity) is
     combined with every step of each continuous axis; unlike it, the identity is kept.
 
+    Two discretisations exist on purpose: this one is the method's (templates, matching and the
+    mixture, stepped by angle), while the pose errors use bop_toolkit's own to the bit
+    (``evaluation.pose_error.bop_symmetry_transformations``), so the measure never moves with
+    the method's choices.
+
     Args:
         discrete: (D, 4, 4) discrete symmetries without the identity.
         continuous: continuous axes.

@@ -1,10 +1,9 @@
 """Per-view rotation measurement with the translation known (paper Section V-A).
 
-From the track's translation ``t_cam_obj = [x_s, y_s, z_s]``: the object origin projects to
-``u``; a square RoI of side ``l_s = (z_r / z_s) * (f / f_r) * l_r`` centred on ``u`` (padded at
-the image border) is resized to ``l_r`` pixels, so the part appears at the templates' scale;
-the front end's mask (dilated by a few pixels, to keep the silhouette's edges) removes the
-clutter; the LINE-2D templates are scored at the one position the translation gives.
+From the track's translation, the view is re-cropped at the templates' canonical distance
+(:func:`estimator.rotation.recrop.crop_roi`: the part at the templates' scale, the front end's
+mask removing the clutter); the LINE-2D templates are scored at the one position the translation
+gives.
 
 Scoring: ``cv2.linemod`` quantises the RoI's gradient orientations (8 bins, as in LINE-2D);
 orientations are spread over T x T pixels and turned into 8 response maps (4 for the same
@@ -28,6 +27,7 @@ import cv2
 import numpy as np
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp
+from posefuse.estimator.rotation.recrop import crop_roi
 from posefuse.estimator.rotation.templates import TemplateBank
 
 N_ORIENTATIONS = 8
@@ -84,58 +84,6 @@ def ray_correction(t_cam_obj: np.ndarray) -> np.ndarray:
         return np.eye(3)
     angle = np.arctan2(s, d[2])
     return so3_exp(axis / s * angle)
-
-
-def crop_roi(
-    image: np.ndarray,
-    K: np.ndarray,
-    t_cam_obj: np.ndarray,
-    bank: TemplateBank,
-    mask: np.ndarray | None = None,
-    dilation_px: int = 3,
-) -> tuple[np.ndarray, np.ndarray | None]:
-    """The scale-normalised RoI and mask.
-
-    Args:
-        image: (H, W, 3) uint8 RGB. K: (3, 3). t_cam_obj: (3,) metres, z > 0.
-        mask: (H, W) bool visible mask of the instance, or None.
-    Returns:
-        roi: (l_r, l_r, 3) uint8 BGR (cv2.linemod's order); roi_mask: (l_r, l_r) uint8 or None.
-    """
-    cfg = bank.config
-    l_r = cfg.roi_size
-    x, y, z = t_cam_obj
-    u = K[0, 0] * x / z + K[0, 1] * y / z + K[0, 2]
-    v = K[1, 1] * y / z + K[1, 2]
-    f = 0.5 * (K[0, 0] + K[1, 1])
-    s = (z / bank.z_r) * (cfg.focal / f)  # RoI pixels per image pixel
-    c = (l_r - 1) / 2.0
-    A = np.array([[s, 0.0, c - s * u], [0.0, s, c - s * v]])
-    # warp, then swap channels: the same pixels as converting the whole image first, at the
-    # cost of a RoI instead of a 1280x720 frame per object
-    roi = cv2.cvtColor(
-        cv2.warpAffine(
-            image, A, (l_r, l_r), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-        ),
-        cv2.COLOR_RGB2BGR,
-    )
-    if mask is None:
-        return roi, None
-    # warped as 0/1 and scaled on the RoI: nearest-neighbour sampling picks the same pixels
-    mask01 = mask.view(np.uint8) if mask.dtype == bool else (mask != 0).astype(np.uint8)
-    m = cv2.warpAffine(
-        np.ascontiguousarray(mask01),
-        A,
-        (l_r, l_r),
-        flags=cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )
-    m *= 255
-    if dilation_px > 0:
-        k = 2 * dilation_px + 1
-        m = cv2.dilate(m, np.ones((k, k), np.uint8))
-    return roi, m
 
 
 class RotationMatcher:

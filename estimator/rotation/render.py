@@ -23,6 +23,7 @@ import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import invert
 
 BACKGROUND = -1
 
@@ -330,9 +331,7 @@ class Renderer:
         """
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         posed = self._posed[mesh_index]
-        T_cam_world = np.eye(4)
-        T_cam_world[:3, :3] = T_world_cam[:3, :3].T
-        T_cam_world[:3, 3] = -T_world_cam[:3, :3].T @ T_world_cam[:3, 3]
+        T_cam_world = invert(T_world_cam)
         pts_cam = posed.vertices @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
         mask = np.zeros((camera.height, camera.width), bool)
         front = pts_cam[:, 2] > 1e-6

@@ -2,8 +2,9 @@
 
 Starting from the verified hypothesis (:mod:`estimator.verification.verify`), the pose
 ``(R_world_obj, t_world_obj)`` is refined by Levenberg-Marquardt on the directional chamfer of
-the model's projected edges in every kept view, plus the chamfer of its occluding contour to the
-front end's mask boundary (:mod:`estimator.verification.edges`). The cameras are known. Residuals
+the model's projected edges (:mod:`estimator.verification.model_edges`) in every kept view, plus
+the chamfer of its occluding contour to the front end's mask boundary
+(:mod:`estimator.verification.edge_maps`). The cameras are known. Residuals
 are the distances read from the maps (RoI pixels), with Huber weights; samples at the truncation (no
 edge near: occluded, or clutter-free background) carry no gradient and leave the fit. The
 translation Gaussian of the track is a prior, and the leading mixture component's covariance a prior
@@ -32,15 +33,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp, so3_log
-from posefuse.estimator.verification.edges import (
-    EdgeView,
-    ModelEdges,
-    pose_edges,
-    project_shown,
-    sample_maps,
-)
+from posefuse.estimator.verification.edge_maps import EdgeView, sample_maps
+from posefuse.estimator.verification.model_edges import ModelEdges, pose_edges, project_shown
 
-__all__ = ["RefineConfig", "Refinement", "accepts_translation", "refine_pose"]
+__all__ = [
+    "EdgeScoring",
+    "PoseGuess",
+    "PosePrior",
+    "RefineConfig",
+    "Refinement",
+    "accepts_translation",
+    "refine_pose",
+]
 
 
 @dataclass(frozen=True)
@@ -241,7 +245,7 @@ def _data_term(
     a = edges.points[s_l] @ reads.R.T  # (n, 3) R p: the sample turned, before the translation
     # per view, the gradient pulled back through the RoI intrinsics (d distance / d (x/z, y/z)),
     # then through the projection, d (x/z, y/z) / d p = [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]]
-    # (geometry.project_jacobian at K = I, written out), then to the world frame: d p_cam /
+    # (projection.project_jacobian at K = I, written out), then to the world frame: d p_cam /
     # d (dt, dphi) = R_cw [I, -hat(R p)], so g_w = R_cw^T grad_p gives the row [g_w, (R p) x g_w]
     J = np.empty((len(live), 6))
     for v in np.flatnonzero(np.diff(bounds)):
@@ -317,34 +321,73 @@ def accepts_translation(
     )
 
 
+@dataclass(frozen=True, eq=False)
+class PoseGuess:
+    """A full pose to start from: R_world_obj (3, 3), t_world_obj (3,) metres."""
+
+    R_world_obj: np.ndarray
+    t_world_obj: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PosePrior:
+    """What the refinement is pulled back to: the translation Gaussian of the track (t_world_obj
+    (3,) metres, cov_t (3, 3) m^2) and the rotation's covariance about the start (cov_R (3, 3)
+    rad^2, a left perturbation in the world frame, floored at ``rotation_floor_deg``)."""
+
+    t_world_obj: np.ndarray
+    cov_t: np.ndarray
+    cov_R: np.ndarray
+
+
+@dataclass(frozen=True)
+class EdgeScoring:
+    """How the views were built and are scored: the chamfer's truncation (RoI pixels) and
+    orientation bins (:class:`estimator.verification.edge_maps.EdgeConfig`), and the weights of
+    the creases and of the mask's boundary against the contour
+    (:class:`estimator.verification.verify.VerificationConfig`)."""
+
+    truncate_px: float
+    bins: int
+    crease_weight: float
+    mask_weight: float
+
+    @classmethod
+    def of(cls, verification) -> EdgeScoring:
+        """The scoring of a ``VerificationConfig``."""
+        return cls(
+            verification.edges.truncate_px,
+            verification.edges.bins,
+            verification.crease_weight,
+            verification.mask_weight,
+        )
+
+
 def refine_pose(
     edges: ModelEdges,
     views: list[EdgeView],
-    R_start: np.ndarray,
-    t_start: np.ndarray,
-    t_prior: np.ndarray,
-    cov_t_prior: np.ndarray,
-    cov_R_prior: np.ndarray,
-    truncate_px: float,
-    bins: int,
-    crease_weight: float,
-    mask_weight: float,
+    start: PoseGuess,
+    prior: PosePrior,
+    scoring: EdgeScoring,
     config: RefineConfig,
-    R_init: np.ndarray | None = None,
-    t_init: np.ndarray | None = None,
+    warm: PoseGuess | None = None,
 ) -> Refinement:
     """Levenberg-Marquardt on the chamfer over all views, with the priors of the module
     docstring.
 
     Args:
-        R_start: (3, 3) R_world_obj; t_start, t_prior: (3,) metres; cov_t_prior: (3, 3) m^2;
-        cov_R_prior: (3, 3) rad^2 (left perturbation, world frame), floored at
-        ``rotation_floor_deg``; truncate_px, bins, crease_weight, mask_weight: as the views
-        were built and are scored (:class:`estimator.verification.edges.EdgeConfig`,
-        :class:`estimator.verification.verify.VerificationConfig`); R_init (3, 3), t_init (3,):
-        where to start instead of the start (the priors stay at R_start and t_prior), taken only
-        where it costs less than the start.
+        start: where the rotation prior is centred and the iterations begin; prior: the
+        translation prior and the rotation's covariance; scoring: as the views were built and
+        are scored; warm: where to start instead of the start (the priors stay where they
+        are), taken only where it costs less than the start.
     """
+    R_start, t_start = start.R_world_obj, start.t_world_obj
+    t_prior, cov_t_prior, cov_R_prior = prior.t_world_obj, prior.cov_t, prior.cov_R
+    truncate_px, bins = scoring.truncate_px, scoring.bins
+    crease_weight, mask_weight = scoring.crease_weight, scoring.mask_weight
+    R_init = t_init = None
+    if warm is not None:
+        R_init, t_init = warm.R_world_obj, warm.t_world_obj
     edges = edges.subset(config.sample_stride)
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))

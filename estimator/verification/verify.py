@@ -9,11 +9,12 @@ turns that map the part almost, but not quite, onto itself (:func:`near_symmetri
 about the object's axes, and the smallest turn about an axis that nearly repeats the part, like a
 gear's tooth), whether or not the catalog calls them symmetries. Every hypothesis, at the
 track's translation, is scored in every kept view (:func:`score_hypotheses`) by the directional
-chamfer of its projected edges against the view's image edges, plus the chamfer of its occluding
-contour against the boundary of the front end's mask (:mod:`estimator.verification.edges`). The
-lowest total cost leads. The costs also re-weight the components: a component's weight is multiplied
-by ``exp(-V (cost - best) / temperature)`` over its V views, so a view that is plainly wrong costs a
-mode its lead, and weights stay a distribution.
+chamfer of its projected edges (:mod:`estimator.verification.model_edges`) against the view's
+image edges, plus the chamfer of its occluding contour against the boundary of the front end's
+mask (:mod:`estimator.verification.edge_maps`). The lowest total cost leads. The costs also
+re-weight the components: a component's weight is multiplied by ``exp(-V (cost - best) /
+temperature)`` over its V views, so a view that is plainly wrong costs a mode its lead, and
+weights stay a distribution.
 """
 
 from __future__ import annotations
@@ -25,13 +26,11 @@ from scipy.spatial import cKDTree
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp
 from posefuse.estimator.rotation.mixture import closest_equivalents
-from posefuse.estimator.verification.edges import (
-    EdgeConfig,
-    EdgeView,
+from posefuse.estimator.verification.edge_maps import EdgeConfig, EdgeView, sample_maps
+from posefuse.estimator.verification.model_edges import (
     ModelEdges,
     pose_edges,
     project_shown,
-    sample_maps,
     silhouette_misses,
 )
 

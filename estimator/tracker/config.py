@@ -1,0 +1,51 @@
+"""The tracker's settings: one frozen record gathering every step's configuration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from posefuse.estimator.rotation.matching import RotationConfig
+from posefuse.estimator.rotation.mixture import MixtureConfig
+from posefuse.estimator.rotation.templates import TemplateConfig
+from posefuse.estimator.translation.association import AssociationConfig
+from posefuse.estimator.translation.founding import FoundingConfig
+from posefuse.estimator.translation.merging import MergeConfig
+from posefuse.estimator.translation.splitting import SplitConfig
+from posefuse.estimator.verification.refinement import RefineConfig
+from posefuse.estimator.verification.verify import VerificationConfig
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    association: AssociationConfig = AssociationConfig()
+    confirm_views: int = 2  # views before a track is confirmed
+    # a confirmed track is dropped after this many consecutive views that predicted it in view
+    # without detecting it, or as many as it was seen in, whichever is more: in a pile a part
+    # is hidden for a while as the camera moves, and evidence for it should outweigh its misses
+    max_misses: int = 5
+    max_misses_tentative: int = 2
+    border_margin_px: float = 2.0  # a box this close to the border is truncated
+    founding: FoundingConfig = FoundingConfig()
+    merging: MergeConfig = MergeConfig()
+    splitting: SplitConfig = SplitConfig()
+    rotation: RotationConfig = RotationConfig()
+    mixture: MixtureConfig = MixtureConfig()
+    templates: TemplateConfig = TemplateConfig()
+    # every view's hypotheses checked in all the track's views, then the pose refined over them
+    verification: VerificationConfig = VerificationConfig()
+    refinement: RefineConfig = RefineConfig()
+    # a view's rotation is measured once the depth is known to this relative std; earlier
+    # views of the track wait (their images are kept for up to max_pending_views frames)
+    rotation_max_depth_rel_std: float = 0.05
+    max_pending_views: int = 8
+    # a track keeps this many views for its translation; older ones are folded into its prior
+    max_track_views: int = 30
+
+    def __post_init__(self) -> None:
+        if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
+            raise ValueError(f"invalid tracker config: {self}")
+
+    @classmethod
+    def with_verification(cls, enabled: bool) -> TrackerConfig:
+        """The defaults, with the verification across views on or off."""
+        return cls(verification=VerificationConfig(enabled=enabled))

@@ -1,0 +1,306 @@
+"""The pose stage of a track: once its translation is known well enough, each waiting view's
+rotation is measured against the class's templates and fused in the track's mixture
+(:mod:`estimator.rotation`); views from new viewpoints keep their edge maps, and the leading
+hypotheses are verified across them and the winner's full pose refined
+(:mod:`estimator.verification`).
+
+:class:`PoseStage` owns what this needs per class, made on first use and shared by every track
+of the class: the rotation matcher (its template bank built or loaded), the model's edge
+samples, its near-symmetric turns and the refinement's settings; and the images of the last
+few frames, which views still waiting for their rotation read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from posefuse.estimator.core.geometry import rotation_angle
+from posefuse.estimator.core.objects import Catalog
+from posefuse.estimator.rotation.matching import RotationMatcher
+from posefuse.estimator.rotation.mixture import RotationMixture
+from posefuse.estimator.rotation.templates import (
+    TemplateBank,
+    build_template_bank,
+    build_template_banks,
+)
+from posefuse.estimator.tracker.config import TrackerConfig
+from posefuse.estimator.tracker.tracks import Track
+from posefuse.estimator.translation.gaussian import MIN_DEPTH
+from posefuse.estimator.verification.edge_maps import edge_view
+from posefuse.estimator.verification.model_edges import ModelEdges, model_edges
+from posefuse.estimator.verification.refinement import (
+    EdgeScoring,
+    PoseGuess,
+    PosePrior,
+    RefineConfig,
+    accepts_translation,
+    refine_pose,
+)
+from posefuse.estimator.verification.verify import (
+    agrees,
+    hypotheses,
+    is_new_viewpoint,
+    near_symmetries,
+    refinement_reach_deg,
+    verify,
+)
+
+
+class PoseStage:
+    """Rotation measurement, verification and refinement of tracks (see the module
+    docstring). Deterministic: the same calls in the same order give the same poses."""
+
+    def __init__(
+        self,
+        catalog: Catalog,
+        config: TrackerConfig,
+        banks: dict[int, TemplateBank] | None = None,
+        template_cache_dir: str | None = None,
+        show_progress: bool = False,
+        matchers: dict | None = None,
+    ):
+        self.catalog = catalog
+        self.config = config
+        self.matchers = {k: RotationMatcher(b, config.rotation) for k, b in (banks or {}).items()}
+        self.matchers.update(matchers or {})
+        self.template_cache_dir = template_cache_dir
+        self.show_progress = show_progress
+        self.images: dict[int, np.ndarray] = {}  # stamp_ns -> image, the last few frames
+        self.edges: dict[int, ModelEdges] = {}  # per class, for verification
+        self.variants: dict[int, np.ndarray] = {}  # per class, near-symmetric turns (M, 3, 3)
+        # per class, the refinement's settings with its turn bounded by the class's basin
+        self.refine_configs: dict[int, RefineConfig] = {}
+
+    # ---- per class, made once --------------------------------------------------------------
+
+    def banks(self) -> dict[int, TemplateBank]:
+        """The template banks built or loaded so far (to share with other estimators)."""
+        return {k: m.bank for k, m in self.matchers.items()}
+
+    def prepare_templates(self, workers: int = 2, progress=None) -> None:
+        """Load or build every class's template bank now, building missing ones in ``workers``
+        processes (see :func:`estimator.rotation.templates.build_template_banks`)."""
+        todo = [self.catalog[k] for k in self.catalog if k not in self.matchers]
+        banks = build_template_banks(
+            todo, self.config.templates, self.template_cache_dir, workers, progress
+        )
+        for obj_id, bank in banks.items():
+            self.matchers[obj_id] = RotationMatcher(bank, self.config.rotation)
+
+    def matcher(self, obj_id: int) -> RotationMatcher:
+        """The rotation matcher of a class (its template bank built or loaded on first use)."""
+        if obj_id not in self.matchers:
+            bank = build_template_bank(
+                self.catalog[obj_id],
+                self.config.templates,
+                self.template_cache_dir,
+                show_progress=self.show_progress,
+            )
+            self.matchers[obj_id] = RotationMatcher(bank, self.config.rotation)
+        return self.matchers[obj_id]
+
+    def refinement_config(self, obj_id: int) -> RefineConfig:
+        """The refinement's settings for a class: the tracker's, its turn bounded by the part's
+        basin (:func:`estimator.verification.verify.refinement_reach_deg`)."""
+        self.model_edges(obj_id)
+        return self.refine_configs[obj_id]
+
+    def model_edges(self, obj_id: int) -> tuple[ModelEdges, np.ndarray]:
+        """The class's edge samples and near-symmetric turns (M, 3, 3), and with them the
+        refinement's settings for the class (:meth:`refinement_config`); made on first use."""
+        if obj_id not in self.edges:
+            model = self.catalog[obj_id]
+            cfg = self.config.verification
+            self.edges[obj_id] = model_edges(model.mesh, model.diameter, cfg.edges)
+            sym = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+            axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+            self.variants[obj_id] = near_symmetries(
+                model.points, model.diameter, sym, axes, cfg.near_frac, cfg.max_variants
+            )
+            reach = refinement_reach_deg(self.variants[obj_id], sym, axes)
+            rcfg = self.config.refinement
+            self.refine_configs[obj_id] = replace(rcfg, accept_deg=min(rcfg.accept_deg, reach))
+        return self.edges[obj_id], self.variants[obj_id]
+
+    # ---- per frame -------------------------------------------------------------------------
+
+    def keep_image(self, stamp_ns: int, image: np.ndarray) -> None:
+        """Keep a frame's image (H, W, 3) for the views that wait for their rotation; the
+        oldest received beyond ``max_pending_views`` are forgotten."""
+        self.images[stamp_ns] = image
+        for stale in list(self.images)[: -self.config.max_pending_views]:
+            del self.images[stale]
+
+    def translation_known(self, track: Track, T_cam_world: np.ndarray) -> bool:
+        """Whether the track's depth in this camera is known to ``rotation_max_depth_rel_std``."""
+        t = track.estimate.t_world_obj
+        p = T_cam_world[:3, :3] @ t + T_cam_world[:3, 3]
+        if p[2] <= MIN_DEPTH:
+            return False
+        ray_world = T_cam_world[:3, :3].T @ (p / np.linalg.norm(p))
+        depth_std = np.sqrt(ray_world @ track.estimate.cov @ ray_world)
+        return depth_std / p[2] <= self.config.rotation_max_depth_rel_std
+
+    def measure_rotations(self, track: Track) -> None:
+        """Measure the rotation in the track's waiting views, once its translation allows; keep
+        the edge maps of new viewpoints, and verify when they add to what the track shows."""
+        if not track.pending or not self.translation_known(track, track.pending[-1].T_cam_world):
+            return
+        if track.mixture is None:
+            track.mixture = RotationMixture.for_model(
+                self.catalog[track.obj_id], self.config.mixture
+            )
+        matcher = self.matcher(track.obj_id)
+        t_world = track.estimate.t_world_obj
+        vcfg = self.config.verification
+        model = self.catalog[track.obj_id]
+        added: list[int] = []  # stamps of the views kept
+        for stamp, T_cam_world, K, mask in track.pending:
+            image = self.images.get(stamp)
+            if image is None:
+                continue
+            t_cam = T_cam_world[:3, :3] @ t_world + T_cam_world[:3, 3]
+            for m in matcher.measure(image, K, t_cam, mask):
+                R_world_obj = T_cam_world[:3, :3].T @ m.R_cam_obj
+                track.mixture.add(R_world_obj, m.confidence)
+            others = [v.T_cam_world for v in track.edge_views if v.stamp_ns != stamp]
+            if (
+                vcfg.enabled
+                and t_cam[2] > MIN_DEPTH
+                and is_new_viewpoint(
+                    np.array(others).reshape(-1, 4, 4),
+                    T_cam_world,
+                    t_world,
+                    vcfg.keyframe_deg,
+                    vcfg.keyframe_distance_frac,
+                )
+            ):
+                view = edge_view(
+                    image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp
+                )
+                track.edge_views = [v for v in track.edge_views if v.stamp_ns != stamp] + [view]
+                del track.edge_views[: -vcfg.max_views]
+                added.append(stamp)
+        track.pending.clear()
+        # verified again when a view adds to what the kept views show, unless the track is
+        # settled and the view agrees with it, or when the mixture no longer has the
+        # components the last verdict weighed
+        verdict = track.verdict
+        stale = verdict is None or len(verdict.weights) != len(track.mixture.components)
+        if added and not stale and self.settled(track):
+            track.settled_stamps = track.settled_stamps | set(added)
+            return
+        if (stale and track.edge_views) or added:
+            self.verify(track, new_views=bool(added))
+
+    def settled(self, track: Track) -> bool:
+        """Whether the track's refined pose still holds, so that verifying and refining again
+        for the views just kept would change nothing (VerificationConfig.settled_margin):
+
+        - the refinement was accepted, and the translation has moved less than
+          ``settled_translation_frac`` of the diameter from the prior it took;
+        - every kept view the pose has not yet been checked against agrees with it: in each,
+          the pose costs at most ``settled_margin`` more than the best of the hypotheses a
+          verification would ask about (:func:`estimator.verification.verify.agrees`: within
+          each view, whose costs depend on what it sees, never across views).
+
+        A settled track then costs those hypotheses scored in its new views instead of in every
+        kept view, and no refinement. A mixture that changes is verified as before (keeping the
+        refined pose without it lost a part on the tuning sets, docs/verification.md), and
+        refined unless the winner still holds the refinement (:meth:`verify`)."""
+        vcfg = self.config.verification
+        refined = track.refined
+        if vcfg.settled_margin is None or refined is None or not refined.accepted:
+            return False
+        edges, variants = self.model_edges(track.obj_id)
+        if (
+            track.refined_t_prior is None
+            or np.linalg.norm(track.estimate.t_world_obj - track.refined_t_prior)
+            > vcfg.settled_translation_frac * edges.diameter
+        ):
+            return False
+        new = [v for v in track.edge_views if v.stamp_ns not in track.settled_stamps]
+        if len(new) == len(track.edge_views):
+            return False
+        if not new:
+            return True
+        components_R = np.array([c.R_world_obj for c in track.mixture.components])
+        R_h, _, _ = hypotheses(components_R, track.mixture.weights, variants, vcfg)
+        return agrees(
+            edges, new, refined.R_world_obj, refined.t_world_obj, R_h, vcfg.settled_margin, vcfg
+        )
+
+    def verify(self, track: Track, new_views: bool = True) -> None:
+        """Score the leading hypotheses in all kept views; refine the winner over them
+        (:mod:`estimator.verification.verify`, :mod:`estimator.verification.refinement`).
+
+        Without new views (the mixture gained or lost a component), a winner whose basin holds
+        the last accepted refinement (within ``accept_deg``, and its translation a move from
+        today's that a refinement would accept, ``refinement.accepts_translation``), at a
+        translation that has moved less than ``settled_translation_frac`` of the diameter from
+        that refinement's prior, keeps it: the kept views are the ones it was refined over or
+        ones that agreed with it (:meth:`settled`), so refining again from the same place would
+        land where it did (``VerificationConfig.reuse_refinement``)."""
+        mixture = track.mixture
+        if mixture is None or not mixture.components or not track.edge_views:
+            return
+        edges, variants = self.model_edges(track.obj_id)
+        vcfg = self.config.verification
+        components_R = np.array([c.R_world_obj for c in mixture.components])
+        verdict = verify(
+            edges,
+            track.edge_views,
+            components_R,
+            mixture.weights,
+            variants,
+            track.estimate.t_world_obj,
+            vcfg,
+            track.scores,
+        )
+        track.verdict = verdict
+        rcfg = self.refinement_config(track.obj_id)
+        previous, track.refined = track.refined, None
+        if verdict is None or not rcfg.enabled:
+            return
+        lead = mixture.components[int(verdict.component[verdict.best])]
+        R_start = verdict.R_world_obj[verdict.best]
+        # the last refined pose, where it lies in the basin of today's start, is a warm start
+        warm = None
+        if (
+            previous is not None
+            and previous.accepted
+            and rotation_angle(previous.R_world_obj @ R_start.T) <= np.deg2rad(rcfg.accept_deg)
+            and accepts_translation(
+                previous.t_world_obj - track.estimate.t_world_obj,
+                np.linalg.inv(track.estimate.cov),
+                edges.diameter,
+                rcfg,
+            )
+        ):
+            warm = PoseGuess(previous.R_world_obj, previous.t_world_obj)
+        if (
+            warm is not None  # in the winner's basin, and near today's translation
+            and not new_views
+            and vcfg.reuse_refinement
+            and track.refined_t_prior is not None
+            and np.linalg.norm(track.estimate.t_world_obj - track.refined_t_prior)
+            <= vcfg.settled_translation_frac * edges.diameter
+        ):
+            track.refined = previous
+            return
+        # the component's covariance, turned with its variant (a turn in the object frame
+        # leaves a world-frame left perturbation as it is)
+        track.refined_t_prior = track.estimate.t_world_obj.copy()
+        track.settled_stamps = frozenset(v.stamp_ns for v in track.edge_views)
+        t_world = track.estimate.t_world_obj
+        track.refined = refine_pose(
+            edges,
+            track.edge_views,
+            PoseGuess(R_start, t_world),
+            PosePrior(t_world, track.estimate.cov, lead.cov),
+            EdgeScoring.of(vcfg),
+            rcfg,
+            warm,
+        )
