@@ -2,7 +2,8 @@
 
     pip install -e ".[dev]"
     nice -n 19 python -m posefuse.bench.mutation association
-    python -m posefuse.bench.mutation geometry --tests tests/test_geometry.py --max-children 2
+    python -m posefuse.bench.mutation geometry --max-children 2 \
+        --tests tests/estimator/core/test_geometry.py
 
 The module is named by its path (``estimator/translation/association.py``), its path below
 ``estimator/`` (``translation/association``), its import name
@@ -50,17 +51,17 @@ EQUIVALENT_FILE = REPO / "bench" / "mutation_equivalent.json"
 PACKAGES = ("estimator", "evaluation")
 # each module's own fast tests (seconds, not minutes)
 DEFAULT_TESTS = {
-    "estimator/core/geometry.py": ["tests/test_geometry.py"],
-    "estimator/core/projection.py": ["tests/test_geometry.py"],
-    "estimator/core/symmetry.py": ["tests/test_symmetry.py"],
-    "estimator/translation/gaussian.py": ["tests/test_translation.py"],
-    "estimator/translation/association.py": ["tests/test_association.py"],
-    "estimator/rotation/mixture.py": ["tests/test_mixture.py"],
-    "estimator/verification/verify.py": ["tests/test_verification.py"],
-    "estimator/verification/model_edges.py": ["tests/test_verification.py"],
-    "estimator/verification/edge_maps.py": ["tests/test_verification.py"],
-    "estimator/verification/refinement.py": ["tests/test_refinement.py"],
-    "evaluation/pose_error.py": ["tests/test_evaluation.py"],
+    "estimator/core/geometry.py": ["tests/estimator/core/test_geometry.py"],
+    "estimator/core/projection.py": ["tests/estimator/core/test_geometry.py"],
+    "estimator/core/symmetry.py": ["tests/estimator/core/test_symmetry.py"],
+    "estimator/translation/gaussian.py": ["tests/estimator/translation/test_translation.py"],
+    "estimator/translation/association.py": ["tests/estimator/translation/test_association.py"],
+    "estimator/rotation/mixture.py": ["tests/estimator/rotation/test_mixture.py"],
+    "estimator/verification/verify.py": ["tests/estimator/verification/test_verification.py"],
+    "estimator/verification/model_edges.py": ["tests/estimator/verification/test_verification.py"],
+    "estimator/verification/edge_maps.py": ["tests/estimator/verification/test_verification.py"],
+    "estimator/verification/refinement.py": ["tests/estimator/verification/test_refinement.py"],
+    "evaluation/pose_error.py": ["tests/evaluation/test_evaluation.py"],
 }
 # flat modules of the old layout that became a module of another name
 RENAMED = {

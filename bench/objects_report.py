@@ -77,7 +77,7 @@ def render_markdown(rows: list[dict]) -> str:
         "# Object symmetries",
         "",
         "Produced by `python -m posefuse.bench.objects_report --out docs/objects.md`; checked by",
-        "`tests/test_objects_catalog.py`.",
+        "`tests/estimator/core/test_objects_catalog.py`.",
         "",
         "A rotation is accepted as a symmetry when the 95th percentile of the distances from",
         f"the rotated surface samples to the surface is at most {DEFAULT_TOL_FRAC:.1%} of the",

@@ -1,8 +1,8 @@
 """Pose errors exactly as bop_toolkit defines them, plus ADD-sym, our headline error.
 
 Every function equals the bop_toolkit function named in its docstring (``bop_toolkit_lib.
-pose_error`` and ``bop_toolkit_lib.misc``); ``tests/test_evaluation.py`` checks them against
-values computed by bop_toolkit itself (``../shared/reference/bop_pose_errors.json``). The
+pose_error`` and ``bop_toolkit_lib.misc``); ``tests/evaluation/test_evaluation.py`` checks them
+against values computed by bop_toolkit itself (``../shared/reference/bop_pose_errors.json``). The
 functions are unit-agnostic: the points, the translations and the symmetries' translations must
 share one unit (metres inside posefuse, millimetres in BOP files).
 

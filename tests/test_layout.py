@@ -119,3 +119,17 @@ def test_modules_stay_a_few_hundred_lines(package):
         if (n := len(p.read_text().splitlines())) > MAX_LINES
     }
     assert not long, f"over {MAX_LINES} lines: {long}"
+
+
+def test_tests_follow_the_tree():
+    """A module's tests are found from its path: every folder of tests/ mirrors a package
+    folder (tests/estimator/translation/ for estimator/translation/, ...)."""
+    tests = ROOT / "tests"
+    folders = [
+        p.relative_to(tests)
+        for p in sorted(tests.rglob("*"))
+        if p.is_dir() and any(p.glob("test_*.py"))
+    ]
+    assert folders, "no test folders"
+    strays = [str(f) for f in folders if str(f) != "." and not (ROOT / f).is_dir()]
+    assert not strays, f"test folders with no package folder beside them: {strays}"

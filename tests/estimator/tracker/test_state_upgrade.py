@@ -27,7 +27,8 @@ from posefuse.estimator.tracker.snapshot import STATE_VERSION, legacy_class, upg
 from posefuse.service.resources import DEFAULT_CATALOG
 from posefuse.service.state import StateError, StateStore, catalog_fingerprint
 
-DATA = Path(__file__).parent / "data" / "state_v2"
+TESTS = Path(__file__).resolve().parents[2]
+DATA = TESTS / "data" / "state_v2"
 
 
 @pytest.fixture(scope="module")

@@ -30,8 +30,9 @@ from posefuse.evaluation.scores import (
 # BOP toolkit figures for the committed procedural catalog, carried with the tests (copied from
 # ../shared/reference, where its README allows it); the real meshes' figures stay in ../shared
 # and are an extra check, run where POSEFUSE_SHARED names that folder (.ci/run does)
-PROCEDURAL_REFERENCE = Path(__file__).parent / "data" / "bop_pose_errors_procedural.json"
-REPO = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parents[1]
+PROCEDURAL_REFERENCE = TESTS / "data" / "bop_pose_errors_procedural.json"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _T(R=None, t=(0, 0, 0)):
@@ -299,3 +300,20 @@ def test_cli_eval_reports_a_bad_file_in_one_line(small_dataset_root, tmp_path, c
     assert main(["eval", "--dataset", str(small_dataset_root), "--results", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("posefuse eval: error:") and "row 1" in err and len(err.splitlines()) == 1
+
+
+def test_eval_symmetries_are_bops_of_the_catalog_entry_made_once(robi_catalog):
+    """A model's pose-error symmetries are bop_toolkit's discretisation of its catalog entry
+    (its continuous axes stepped too), computed once per model."""
+    continuous = 0
+    for model in robi_catalog.values():
+        syms = eval_symmetries(model)
+        expected = pose_error.bop_symmetry_transformations(
+            model.symmetries_discrete,
+            [(np.asarray(c.axis), np.asarray(c.offset)) for c in model.symmetries_continuous],
+        )
+        np.testing.assert_array_equal(syms, expected)
+        np.testing.assert_array_equal(syms[0], np.eye(4))
+        assert eval_symmetries(model) is syms
+        continuous += len(model.symmetries_continuous) > 0
+    assert continuous > 0, "no part of the catalog has a continuous symmetry"

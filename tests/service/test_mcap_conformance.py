@@ -28,7 +28,8 @@ from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_R
 from posefuse.service.settings import Settings, zenoh_config
 from posefuse.service.worker import EstimatorWorker, make_detector
 
-JS = Path(__file__).parent / "js"
+TESTS = Path(__file__).resolve().parents[1]
+JS = TESTS / "js"
 FOXGLOVE_SCHEMAS = {
     "foxglove.CompressedImage",
     "foxglove.CameraCalibration",

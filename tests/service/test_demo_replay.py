@@ -178,8 +178,8 @@ def test_offline_replay_matches_the_expected_file_and_is_repeatable(default_bank
         pytest.skip(
             f"{EXPECTED} was made with another model than {DEFAULT_MODEL}: regenerate it with "
             "`posefuse replay recordings/demo.mcap --offline --out DIR` and its front end's "
-            f"{EXPECTED_FRONTEND.name} with `python tests/test_demo_replay.py` (the replay met "
-            "the floor)"
+            f"{EXPECTED_FRONTEND.name} with `python tests/service/test_demo_replay.py` (the replay "
+            "met the floor)"
         )
     expected = json.loads(EXPECTED.read_text())
     if not _same_frontend():
