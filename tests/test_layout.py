@@ -73,6 +73,26 @@ def test_the_method_imports_nothing_that_measures_or_serves_it():
     assert not offenders, "\n".join(offenders)
 
 
+@pytest.mark.parametrize(
+    ("package", "forbidden"),
+    [
+        ("evaluation", ("service", "cli", "bench", "clients")),
+        ("service", ("cli", "bench", "clients")),
+    ],
+)
+def test_the_measuring_and_the_service_stay_below_the_tools(package, forbidden):
+    """evaluation/ measures the method without the service; service/ never reaches for the
+    command line, the benchmarks or the clients."""
+    offenders = [
+        f"{name} imports {m}"
+        for name, path in _modules().items()
+        if name.startswith(f"posefuse.{package}")
+        for m in sorted(_imports(path, top_level_only=False))
+        if m.startswith(tuple(f"posefuse.{f}" for f in forbidden))
+    ]
+    assert not offenders, "\n".join(offenders)
+
+
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
     """One import cycle, as the list of modules around it, or None (depth-first search)."""
     state: dict[str, int] = {}  # 1: on the stack, 2: done

@@ -40,8 +40,8 @@ class EdgeConfig:
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
     max_faces: int = 2000  # the mesh is decimated to this many faces first
-    # edge samples of a model, at most (docs/verification.md, "Fewer edge samples": 1000 cut the
-    # step's cost by 30% and lost two chrome screws on the tuning set)
+    # edge samples of a model, at most: 1000 cut the step's cost by 30% and lost two chrome
+    # screws on the tuning set (docs/lab/2026-12-03-verification-changed-mixture-fewer-samples.md)
     max_points: int = 2000
     # self-occlusion is looked up per viewpoint (OcclusionTable): the camera's direction from the
     # part snapped to one of this many directions (about 3 degrees apart at 4096), its distance
@@ -163,7 +163,7 @@ def edge_view(
     dt = np.empty((config.bins, L, L), np.float32)
     for k in range(config.bins):
         # the 5x5 mask's distance is within 0.2 px of the exact one where read, and cheaper
-        # (docs/verification.md, "Self-occlusion by viewpoint, and cheaper steps")
+        # (docs/lab/2026-12-03-verification-self-occlusion-table.md)
         dt[k] = cv2.distanceTransform((b != k).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_5)
     # orientation term: min over bins of distance + penalty * circular bin difference
     lam = np.float32(config.bin_penalty_px)

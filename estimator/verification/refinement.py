@@ -59,15 +59,15 @@ class RefineConfig:
     # The tracker narrows it per part to half the part's smallest near-symmetric turn
     # (verification.refinement_reach_deg): 90 degrees, half a flip, for the catalog's parts. A
     # template match in a pile can be 15 to 30 degrees off in its own basin, and the bound of
-    # 15 degrees it had refused the refinements that brought it back (docs/verification.md, "A
-    # refinement may turn as far as its basin reaches")
+    # 15 degrees it had refused the refinements that brought it back
+    # (docs/lab/2026-12-04-verification-refinement-basin.md)
     accept_deg: float = 90.0
     accept_frac: float = 0.1  # of the diameter
     # a translation that moved farther than accept_frac, up to accept_frac_max, is accepted
     # where the translation prior finds the move likely: its squared Mahalanobis distance under
     # the prior's covariance at most accept_chi2 (a two-view track, unsure of its depth, may
     # move farther than one seen from eight views); None: never. Chosen on the tuning sets
-    # (docs/verification.md, "A translation the prior allows")
+    # (docs/lab/2026-12-03-verification-translation-prior-allows.md)
     accept_frac_max: float | None = 0.3
     accept_chi2: float = 11.34  # chi2 with 3 degrees of freedom at p = 0.99
     # the published covariance is the inverse of the information at the solution plus a floor
