@@ -65,14 +65,17 @@ def installed(tmp_path_factory):
         timeout=180,
     )
     (wheel,) = dist.glob("posefuse-*.whl")
-    # the dependencies come from this environment; posefuse itself only from the wheel
+    # the dependencies come from this environment; posefuse itself only from the wheel. A venv
+    # made with --system-site-packages would see the base interpreter's packages, not those of
+    # the environment the tests run in (a user's venv): this environment's package folders are
+    # put on the new venv's path instead, after its own, by a .pth file
     venv = tmp / "venv"
     subprocess.run(
-        [sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)],
-        check=True,
-        timeout=120,
+        [sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120
     )
     python = venv / "bin" / "python"
+    site = _purelib(python)
+    (Path(site) / "_test_environment.pth").write_text("\n".join(_environment_paths()) + "\n")
     subprocess.run(
         [
             str(python),
@@ -89,14 +92,28 @@ def installed(tmp_path_factory):
         check=True,
         timeout=180,
     )
-    site = subprocess.run(
+    return python, Path(site) / "posefuse", src, files
+
+
+def _purelib(python: Path) -> str:
+    """The site-packages folder of a venv's python."""
+    return subprocess.run(
         [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
         capture_output=True,
         text=True,
         check=True,
         timeout=60,
     ).stdout.strip()
-    return python, Path(site) / "posefuse", src, files
+
+
+def _environment_paths() -> list[str]:
+    """The package folders of the environment the tests run in (a venv's, a conda
+    environment's or the system interpreter's), without the checkout an editable install of
+    posefuse points at."""
+    import site
+
+    paths = [*site.getsitepackages(), site.getusersitepackages()]
+    return [p for p in dict.fromkeys(paths) if Path(p).is_dir() and Path(p).resolve() != REPO]
 
 
 def _run(command, cwd, timeout=120):

@@ -385,9 +385,6 @@ def refine_pose(
     t_prior, cov_t_prior, cov_R_prior = prior.t_world_obj, prior.cov_t, prior.cov_R
     truncate_px, bins = scoring.truncate_px, scoring.bins
     crease_weight, mask_weight = scoring.crease_weight, scoring.mask_weight
-    R_init = t_init = None
-    if warm is not None:
-        R_init, t_init = warm.R_world_obj, warm.t_world_obj
     edges = edges.subset(config.sample_stride)
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))
@@ -425,13 +422,13 @@ def refine_pose(
 
     R, t = R_start.copy(), np.asarray(t_start, float).copy()
     sets = _showing(edges, stack, R, t)
-    if R_init is None or t_init is None:
+    if warm is None:
         cost, H, g = objective(R, t, sets)
         cost_start = cost
     else:
         # a warm start (the last result of the same hypothesis), taken where it costs less. It
         # mostly does, so its Jacobian is taken at once and the start's only if the start wins
-        R_w, t_w = np.asarray(R_init, float), np.asarray(t_init, float)
+        R_w, t_w = np.asarray(warm.R_world_obj, float), np.asarray(warm.t_world_obj, float)
         sets_w = _showing(edges, stack, R_w, t_w)
         warm = objective(R_w, t_w, sets_w)
         reads = _read(

@@ -317,3 +317,25 @@ def test_eval_symmetries_are_bops_of_the_catalog_entry_made_once(robi_catalog):
         assert eval_symmetries(model) is syms
         continuous += len(model.symmetries_continuous) > 0
     assert continuous > 0, "no part of the catalog has a continuous symmetry"
+
+
+def test_bop_symmetry_steps_turn_right_handed_and_take_any_numbers():
+    """Step k of a continuous axis turns by +2 pi k / n about it (right-handed, as
+    bop_toolkit's ``transformations.rotation_matrix``); integer symmetries give float64, and an
+    offset given as a column is taken as the point it is."""
+    axis = np.array([0.0, 0.0, 1.0])
+    syms = pose_error.bop_symmetry_transformations(np.zeros((0, 4, 4)), [(axis, [0, 0, 0])])
+    n = len(syms)
+    np.testing.assert_allclose(
+        syms[1, :3, :3], Rotation.from_rotvec(axis * 2 * np.pi / n).as_matrix(), atol=1e-15
+    )
+    flip = np.diag([1, -1, -1, 1])  # a half turn about x, in integers
+    discrete = pose_error.bop_symmetry_transformations(flip[None], [])
+    assert discrete.dtype == np.float64
+    np.testing.assert_array_equal(discrete[1], flip)
+    column = pose_error.bop_symmetry_transformations(
+        np.zeros((0, 4, 4)), [(axis, np.array([[0.01], [0.02], [0.0]]))]
+    )
+    np.testing.assert_allclose(
+        column[:, :3, 3] + column[:, :3, :3] @ [0.01, 0.02, 0], [[0.01, 0.02, 0]] * n, atol=1e-15
+    )
