@@ -124,6 +124,8 @@ def _server(config):
     in flight and written its snapshot. The caller stops the cells, then returns 0."""
     import uvicorn  # lazy: only `serve` runs a server (~45 ms)
 
+    from posefuse.service.api import begin_closing  # lazy: fastapi (~0.3 s)
+
     class Server(uvicorn.Server):
         stop_signal: int | None = None
 
@@ -132,6 +134,7 @@ def _server(config):
                 self.force_exit = True  # a second Ctrl-C: stop serving open requests now
             self.stop_signal = sig
             self.should_exit = True
+            begin_closing(self.config.app)  # open /events streams end now, not at the timeout
 
     return Server(config)
 

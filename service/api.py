@@ -13,13 +13,14 @@ import hmac
 import json
 import math
 import queue
+import threading
 from typing import Annotated
 
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, model_validator
 
 from posefuse.service.codec import estimate_to_dict
 
@@ -60,11 +61,22 @@ class ObjectEstimateModel(BaseModel):
     model_config = {"json_schema_extra": {"examples": [EXAMPLE_ESTIMATE]}}
 
 
+def _integral_number(value):
+    """A float with no fractional part as the integer it is (JSON Schema's ``integer``);
+    anything else as it came, for StrictInt to judge."""
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        return int(value)
+    return value
+
+
 class ResetRequestModel(BaseModel):
     """Reset everything (empty body), one class, or one object."""
 
-    # omitted, not null; an integer, not a bool or a float
-    class_id: StrictInt = Field(None, ge=1, le=2**31 - 1)
+    # omitted, not null; an integer, not a bool, a string or a fraction. A JSON number with no
+    # fractional part (4.0) is an integer to JSON Schema, and so to the OpenAPI document
+    class_id: Annotated[StrictInt, BeforeValidator(_integral_number)] = Field(
+        None, ge=1, le=2**31 - 1
+    )
     object_id: str = Field(None, min_length=1, max_length=256)
 
     @model_validator(mode="after")
@@ -280,19 +292,30 @@ def _serve_docs_locally(app: FastAPI) -> None:
         )
 
 
-def create_cells_app(cells) -> FastAPI:
+def create_cells_app(cells, closing: threading.Event | None = None) -> FastAPI:
     """The API of a process serving several cells: the first cell's routes at ``/``, every
-    cell's at ``/cells/{cell}/`` (one cell: the plain API, with that mount too)."""
+    cell's at ``/cells/{cell}/`` (one cell: the plain API, with that mount too); one
+    ``closing`` for all of them (see :func:`create_app`)."""
+    closing = closing or threading.Event()
     first = next(iter(cells.daemons.values()))
-    app = create_app(first)
+    app = create_app(first, closing)
     for cell, daemon in cells.daemons.items():
-        app.mount(f"/cells/{cell}", create_app(daemon))
+        app.mount(f"/cells/{cell}", create_app(daemon, closing))
     return app
 
 
-def create_app(daemon) -> FastAPI:
+def begin_closing(app) -> None:
+    """Tell the app's open event streams that the server is stopping: each ends within one
+    poll (20 ms), so that a stop waits for no stream and cancels none."""
+    closing = getattr(getattr(app, "state", None), "closing", None)
+    if closing is not None:
+        closing.set()
+
+
+def create_app(daemon, closing: threading.Event | None = None) -> FastAPI:
     """The API of one daemon (anything with settings, worker, stats_dict, reset, subscribe,
-    ready)."""
+    ready). ``closing``, once set (:func:`begin_closing`), ends the open ``/events`` streams."""
+    closing = closing or threading.Event()
     settings = daemon.settings
     token = settings.api_token.get_secret_value() if settings.api_token else None
     app = FastAPI(
@@ -307,6 +330,7 @@ def create_app(daemon) -> FastAPI:
             HTTPException: _http_error,
         },
     )
+    app.state.closing = closing
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _serve_docs_locally(app)
 
@@ -440,7 +464,7 @@ def create_app(daemon) -> FastAPI:
             sent = 0
             try:
                 yield ": posefuse estimate stream\n\n"
-                while max_events <= 0 or sent < max_events:
+                while (max_events <= 0 or sent < max_events) and not closing.is_set():
                     try:
                         item = q.get_nowait()
                     except queue.Empty:

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from posefuse.estimator.core.camera import Camera
+from posefuse.service.camera_checks import implausible_intrinsics
 from posefuse.service.errors import DecodeError
 from posefuse.service.image_checks import check_compressed_image
 
@@ -157,6 +158,9 @@ def decode_camera_info(payload: bytes, max_bytes: int = DEFAULT_MAX_PAYLOAD) -> 
         camera = Camera(K.reshape(3, 3), width, height, D if len(D) else None)
     except ValueError as exc:
         raise DecodeError(kind, str(exc)) from None
+    why = implausible_intrinsics(camera.K, width, height, D)
+    if why is not None:
+        raise DecodeError(kind, f"no real camera has this: {why}", "implausible")
     return CameraInfoMsg(stamp, frame_id, camera)
 
 

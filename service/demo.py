@@ -88,7 +88,7 @@ def run_demo(
 
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
-    from posefuse.service.api import create_app
+    from posefuse.service.api import begin_closing, create_app
     from posefuse.service.codec import decode_reset, estimate_to_dict
     from posefuse.service.daemon import Daemon
     from posefuse.service.recording import read_messages
@@ -236,6 +236,7 @@ def run_demo(
             f"(run `posefuse demo --serve 600` to keep the daemon and its API up; `posefuse "
             f"objects --zenoh --connect {settings.listen[0]}` then asks it over Zenoh)"
         )
+    begin_closing(server.config.app)
     server.should_exit = True
     daemon.stop()
     daemon_thread.join(timeout=10)

@@ -12,17 +12,24 @@ another:
   dropped (the latest frames win when the estimator falls behind). The decoded images of all
   queues together are bounded by ``max_queued_bytes``.
 - An image waits for its camera's info and for a pose after its stamp at most ``wait_ns`` of
-  arrival time, then it is dropped (``no_info`` / ``no_pose``).
+  arrival time, then it is dropped (``no_info`` / ``no_pose``). An image of another size than its
+  camera's info says is dropped too (``size_unlike_info``): the intrinsics are not its own.
 - Lateness is per camera: an image not newer than the last one handed out *of that camera* is
   late and dropped. ``reanchor_frames`` late images in a row, in increasing stamp order, mean
   that camera's clock stepped back (or a publisher restarted, or a stamp far in the future got
   through): the camera re-anchors on them and goes on (``reanchored`` counts it).
-- Ready frames of different cameras leave oldest stamp first; a camera waiting for its pose
-  does not hold back another one's ready frame.
+- Ready frames of different cameras leave oldest stamp first, except that a camera whose ready
+  frame was passed over goes before those that were not (the one passed over most often
+  first): when the estimator falls behind, every camera gets its share of the frames processed,
+  where oldest-first alone would serve the cameras whose stamps come first in each cycle and
+  let the others' queues drop everything. A camera waiting for its pose does not hold back
+  another one's ready frame.
 - A camera silent for ``camera_timeout_ns`` is forgotten; at most ``max_cameras`` are kept. At
   the limit, a new camera takes the slot of one that never completed a frame (no frame handed
-  out, and no info or no pose yet; those with neither first, then the least recently seen):
-  junk camera ids never lock a real camera out (``cameras_evicted``).
+  out: those that sent fewer of an info, a pose and an image first, then the least recently
+  seen), and only then of a silent one: junk camera ids, even with a valid
+  info and pose, never lock a real camera out (``cameras_evicted``), and a working camera that
+  pauses keeps its slot while junk holds one.
 - With ``max_future_ns``, images and poses stamped further ahead of ``now_ns`` are refused
   (``future_stamp``, ``future_pose``): no estimate carries a stamp from the future, and a
   camera's clock cannot be dragged ahead of the daemon's.
@@ -138,6 +145,7 @@ class _Camera:
         self.last_seen = now_ns
         self.last_seq: dict[str, int] = {}
         self.counters = CameraCounters()
+        self.passed_over = 0  # pops that served another camera while this one had a frame ready
 
     def queued_bytes(self) -> int:
         return sum(w.msg.image.nbytes for w in self.images)
@@ -206,9 +214,9 @@ class FrameSynchronizer:
         cam = self._cams.get(cam_id)
         if cam is None:
             if len(self._cams) >= self.config.max_cameras:
-                self._forget_silent(now_ns)
-            if len(self._cams) >= self.config.max_cameras:
                 self._evict_unproven()
+            if len(self._cams) >= self.config.max_cameras:
+                self._forget_silent(now_ns)
             if len(self._cams) >= self.config.max_cameras:
                 return None
             cam = self._cams[cam_id] = _Camera(self.config, now_ns)
@@ -216,12 +224,18 @@ class FrameSynchronizer:
         return cam
 
     def _evict_unproven(self) -> None:
-        """Free the slot of a camera that never completed a frame: none handed out and no info
-        or no pose yet (those with neither first, then the least recently seen)."""
+        """Free the slot of a camera that never completed a frame (none handed out): those
+        that sent fewer of an info, a pose and an image first, then the least recently seen.
+        A camera that sends an info and a pose but never an image holds no slot that a camera
+        with images needs."""
         unproven = [
-            (int(cam.info is not None) + int(bool(cam.poses)), cam.last_seen, cid)
+            (
+                int(cam.info is not None) + int(bool(cam.poses)) + int(cam.counters.images > 0),
+                cam.last_seen,
+                cid,
+            )
             for cid, cam in self._cams.items()
-            if cam.counters.synced == 0 and (cam.info is None or not cam.poses)
+            if cam.counters.synced == 0
         ]
         if not unproven:
             return
@@ -328,6 +342,11 @@ class FrameSynchronizer:
                             self.dropped["no_info"] += 1
                             continue
                         break
+                    if head.msg.image.shape[:2] != (cam.info.camera.height, cam.info.camera.width):
+                        # the info's intrinsics are for another image size: never used on this
+                        cam.images.pop(0)
+                        self.dropped["size_unlike_info"] += 1
+                        continue
                     T, status = cam.pose_at(head.msg.stamp_ns)
                     if status == "no_pose" or (status == "wait" and waited > self.config.wait_ns):
                         cam.images.pop(0)
@@ -338,8 +357,11 @@ class FrameSynchronizer:
                     break
             if not ready:
                 return None
-            stamp, cid, T = min(ready, key=lambda r: (r[0], r[1]))
+            stamp, cid, T = min(ready, key=lambda r: (-self._cams[r[1]].passed_over, r[0], r[1]))
+            for _, other, _ in ready:
+                self._cams[other].passed_over += 1
             cam = self._cams[cid]
+            cam.passed_over = 0
             head = cam.images.pop(0)
             cam.last_out = stamp
             cam.counters.synced += 1

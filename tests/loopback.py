@@ -171,7 +171,8 @@ class FakeCamera:
         """Publish the camera info, and answer the daemon's requests for it from now on."""
         from posefuse.clients.camera import InfoServer
 
-        payload = encode_camera_info(stamp, self.cam_id, _camera())
+        height, width = self.image.shape[:2]  # the info describes the images it sends
+        payload = encode_camera_info(stamp, self.cam_id, _camera(width, height))
         if self.info_server is None:
             self.info_server = InfoServer(self.session)
         self.info_server.publish(self.key("info"), payload)
@@ -218,9 +219,12 @@ class FakeCamera:
                 time.sleep(pause)
 
 
-def _camera():
+def _camera(width: int = 1280, height: int = 720):
+    """The fake camera at 1280x720, or its intrinsics scaled to another image size."""
     import numpy as np
 
     from posefuse.estimator.core.camera import Camera
 
-    return Camera(np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]]), 1280, 720)
+    sx, sy = width / 1280, height / 720
+    K = np.array([[900.0 * sx, 0, 640 * sx], [0, 900.0 * sy, 360 * sy], [0, 0, 1]])
+    return Camera(K, width, height)

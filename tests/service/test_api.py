@@ -87,6 +87,15 @@ def test_docs_page_loads_its_assets_locally_not_from_a_cdn(daemon):
         assert got.status_code == 200 and len(got.content) > 1000
 
 
+def test_a_class_id_written_as_4_0_is_class_4(daemon):
+    """JSON Schema's integer includes 4.0; the API takes it as the class it names."""
+    client = TestClient(create_app(daemon))
+    r = client.post(
+        "/reset", content='{"class_id": 4.0}', headers={"content-type": "application/json"}
+    )
+    assert r.status_code == 200, r.text
+
+
 @pytest.mark.parametrize(
     "body",
     [
@@ -95,7 +104,7 @@ def test_docs_page_loads_its_assets_locally_not_from_a_cdn(daemon):
         '{"class_id": -Infinity}',
         '{"class_id": 1e400}',
         '{"class_id": true}',
-        '{"class_id": 1.0}',
+        '{"class_id": 1.5}',
         '{"class_id": "1"}',
         '{"class_id": 0}',
         '{"object_id": ""}',

@@ -101,6 +101,40 @@ def test_bad_images_and_infos():
         decode_reset(_pack({"v": 1, "class_id": 1, "object_id": "a"}))
 
 
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        ({"K": [1e-300, 0, 640, 0, 924, 360, 0, 0, 1]}, "fx = 1e-300 px"),
+        ({"K": [1e300, 0, 640, 0, 924, 360, 0, 0, 1]}, "fx = 1e[+]300 px"),
+        ({"K": [924, 0, 640, 0, 1e300, 360, 0, 0, 1]}, "fy = 1e[+]300 px"),
+        ({"K": [924, 1e300, 640, 0, 924, 360, 0, 0, 1]}, "skew"),
+        ({"K": [924, 0, 640, 0, 100, 360, 0, 0, 1]}, "fy / fx"),
+        ({"K": [924, 0, 5000, 0, 924, 360, 0, 0, 1]}, "principal point"),
+        ({"D": [1e12, 0, 0, 0, 0]}, "distortion coefficient is 1e[+]12"),
+    ],
+)
+def test_camera_infos_no_real_camera_has_are_refused_with_their_reason(change, reason):
+    """Well-formed infos that describe no camera (a focal length of 1e-300 or 1e300 pixels, a
+    skew of 1e300, a distortion of 1e12) are refused as implausible, with why."""
+    info = msgpack.unpackb(encode_camera_info(1, "c", CAM))
+    assert decode_camera_info(_pack(info)).camera.width == CAM.width  # the real one passes
+    with pytest.raises(DecodeError, match=reason) as refused:
+        decode_camera_info(_pack({**info, **change}))
+    assert refused.value.code == "implausible"
+
+
+def test_the_lenses_of_robot_cells_are_plausible():
+    """From a 160 degree wide angle to a 2 degree telephoto, with ordinary distortion."""
+    from posefuse.service.camera_checks import implausible_intrinsics
+
+    for fov_deg in (2.0, 45.0, 90.0, 160.0):
+        f = 320.0 / np.tan(np.radians(fov_deg / 2))
+        K = np.array([[f, 0, 320.0], [0, f, 240.0], [0, 0, 1]])
+        assert (
+            implausible_intrinsics(K, 640, 480, np.array([-0.4, 0.2, 0.001, -0.001, -0.05])) is None
+        )
+
+
 @pytest.mark.parametrize("encoding", ["png", "jpeg"])
 def test_decompression_bombs_are_refused_before_decoding(encoding, monkeypatch):
     """20000x20000 declared small: refused from the stream's header, the decoder never called

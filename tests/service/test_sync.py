@@ -4,11 +4,12 @@ bounded queues, re-anchoring after clock steps, silent cameras, sequence gaps.""
 import numpy as np
 import pytest
 
+from posefuse.estimator.core.camera import Camera
 from posefuse.service.codec import CameraInfoMsg, CameraPoseMsg, ImageMsg
 from posefuse.service.sync import FrameSynchronizer, SyncConfig, interpolate_pose
-from posefuse.sim.scenes import REALSENSE_1280x720 as CAM
 
 IMG = np.zeros((2, 2, 3), np.uint8)
+CAM = Camera(np.array([[2.0, 0, 1], [0, 2.0, 1], [0, 0, 1]]), 2, 2)  # IMG's camera
 MS = 1_000_000
 
 
@@ -206,9 +207,25 @@ def test_a_camera_that_never_completed_a_frame_yields_its_slot():
     s.add_pose("new2", CameraPoseMsg(1, "new2", "world", _pose(0.0)), 13)
     s.add_pose("late", CameraPoseMsg(1, "late", "world", _pose(0.0)), 13)
     _ready_camera(s, "late", now=13)
-    # every camera has an info and a pose now: nobody yields, the newcomer is refused
-    assert not s.add_image("more", ImageMsg(1, "more", IMG), 14)
-    assert s.dropped["too_many_cameras"] == 1 and len(s.cameras()) == 4
+    # every camera has an info and a pose now: the ones that never sent an image yield first
+    assert s.add_image("more", ImageMsg(1, "more", IMG), 14)
+    assert "real" in s.cameras() and "more" in s.cameras() and len(s.cameras()) == 4
+    assert s.dropped["too_many_cameras"] == 0  # (working cameras only refuse: the test above)
+
+
+def test_cameras_that_never_send_an_image_do_not_lock_a_real_one_out():
+    """Fifteen ids that send one valid info and pose each, never an image, and one working
+    camera fill the sixteen slots: a new camera with images still gets one, and the working
+    camera, silent for a while, keeps its own while such ids hold slots."""
+    s = _sync(max_cameras=16, camera_timeout_ns=10 * 10**9)
+    _working_camera(s, "real", now=0)
+    for k in range(15):
+        _ready_camera(s, f"junk{k:02d}", now=k)
+        s.add_pose(f"junk{k:02d}", CameraPoseMsg(1, f"junk{k:02d}", "world", _pose(0.0)), k)
+    later = 20 * 10**9  # "real" has been silent longer than camera_timeout_ns
+    assert s.add_image("new", ImageMsg(1, "new", IMG), later)
+    assert "new" in s.cameras() and "real" in s.cameras() and "junk00" not in s.cameras()
+    assert s.events["cameras_evicted"] == 1 and s.dropped["too_many_cameras"] == 0
 
 
 def test_frames_and_poses_stamped_ahead_of_the_clock_are_refused():
@@ -223,3 +240,42 @@ def test_frames_and_poses_stamped_ahead_of_the_clock_are_refused():
     s.add_pose("a", CameraPoseMsg(stamp, "a", "world", _pose(0.0)), now)
     assert s.add_image("a", ImageMsg(stamp, "a", IMG), now)
     assert s.pop(now).stamp_ns == stamp and s.pending() == 0
+
+
+def test_an_image_of_another_size_than_its_info_is_dropped_and_counted():
+    """The intrinsics of a 2x2 camera are never used on a 4x2 image (a camera that changed its
+    resolution without a new info): the image is dropped, and counted by why."""
+    s = _sync()
+    _ready_camera(s, "a")
+    s.add_pose("a", CameraPoseMsg(0, "a", "world", _pose(0.0)))
+    s.add_pose("a", CameraPoseMsg(1000, "a", "world", _pose(1.0)))
+    assert s.add_image("a", ImageMsg(100, "a", np.zeros((2, 4, 3), np.uint8)))
+    assert s.pop() is None
+    assert s.dropped["size_unlike_info"] == 1
+    assert s.add_image("a", ImageMsg(200, "a", IMG))  # its own size passes
+    assert s.pop().stamp_ns == 200
+
+
+def test_every_camera_gets_its_share_when_the_estimator_falls_behind():
+    """Four cameras publish in the same order every cycle and the estimator takes two frames a
+    cycle: each camera gets half of its frames processed (oldest-first alone served the first
+    two cameras every cycle and let the last two drop everything)."""
+    s = _sync(image_queue=2)
+    cams = ["a", "b", "c", "d"]
+    for cam in cams:
+        _ready_camera(s, cam)
+        s.add_pose(cam, CameraPoseMsg(0, cam, "world", _pose(0.0)))
+    served = dict.fromkeys(cams, 0)
+    cycles = 40
+    for cycle in range(cycles):
+        base = (cycle + 1) * 1000
+        for k, cam in enumerate(cams):
+            for t in (base - 1, base + 500):  # poses no further apart than max_pose_gap_ns
+                s.add_pose(cam, CameraPoseMsg(t, cam, "world", _pose(1.0)))
+            s.add_image(cam, ImageMsg(base + k, cam, IMG))
+        for _ in range(2):
+            frame = s.pop()
+            served[frame.camera_id] += 1
+    mean = sum(served.values()) / len(cams)
+    assert mean == cycles * 2 / len(cams)
+    assert all(abs(n - mean) <= 0.2 * mean for n in served.values()), served
