@@ -84,7 +84,7 @@ class Settings(BaseSettings):
     verify: bool = False
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
     max_cameras: int = 16  # at the limit, a camera that never completed a frame yields
-    camera_timeout_s: float = 60.0  # a silent camera is forgotten after this
+    camera_timeout_s: float = 60.0  # silent this long, a camera is forgotten when a slot is needed
     max_future_s: float = Field(
         10.0, gt=0, description="frames and poses stamped further ahead of the clock are refused"
     )

@@ -24,7 +24,8 @@ another:
   where oldest-first alone would serve the cameras whose stamps come first in each cycle and
   let the others' queues drop everything. A camera waiting for its pose does not hold back
   another one's ready frame.
-- A camera silent for ``camera_timeout_ns`` is forgotten; at most ``max_cameras`` are kept. At
+- At most ``max_cameras`` are kept; a camera silent for ``camera_timeout_ns`` is forgotten when
+  its slot is needed, never while a slot is free (a camera that pauses keeps its info). At
   the limit, a new camera takes the slot of one that never completed a frame (no frame handed
   out: those that sent fewer of an info, a pose and an image first, then the least recently
   seen), and only then of a silent one: junk camera ids, even with a valid
@@ -74,7 +75,7 @@ class SyncConfig:
     exact_tolerance_ns: int = 1_000_000  # a pose this close to the stamp is used as is
     wait_ns: int = 500_000_000  # arrival time an image may wait for its info and pose
     reanchor_frames: int = 3  # late images in a row (increasing stamps) that re-anchor a camera
-    camera_timeout_ns: int = 60_000_000_000  # a camera silent this long is forgotten
+    camera_timeout_ns: int = 60_000_000_000  # silent this long, forgotten when a slot is needed
     max_cameras: int = 16
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded images waiting, all cameras together
     max_future_ns: int | None = None  # stamps further ahead of now_ns are refused (None: any)
@@ -326,11 +327,10 @@ class FrameSynchronizer:
     def pop(self, now_ns: int = 0) -> SyncedFrame | None:
         """The oldest frame that can be processed now, with its camera and pose; or None.
 
-        Images that waited longer than ``wait_ns`` for their info or pose are dropped here, and
-        cameras silent for ``camera_timeout_ns`` forgotten.
+        Images that waited longer than ``wait_ns`` for their info or pose are dropped here. A
+        silent camera is not forgotten here: only when its slot is needed (``_cam``).
         """
         with self._lock:
-            self._forget_silent(now_ns)
             ready: list[tuple[int, str, np.ndarray]] = []
             for cid, cam in self._cams.items():
                 while cam.images:

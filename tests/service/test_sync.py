@@ -167,6 +167,20 @@ def test_silent_cameras_are_forgotten_and_cameras_are_bounded():
     assert s.cameras() == ["c"] and s.events["cameras_forgotten"] == 2
 
 
+def test_a_camera_that_pauses_keeps_its_slot_while_one_is_free():
+    """Silent far longer than camera_timeout_ns, a camera is still known (its info latched) as
+    long as no new camera needs its slot; it goes on from its next frame without a new info."""
+    s = _sync(max_cameras=2, camera_timeout_ns=10 * 10**9)
+    _working_camera(s, "a", now=0)
+    much_later = 100 * 10**9
+    assert s.pop(much_later) is None
+    assert s.cameras() == ["a"] and s.events["cameras_forgotten"] == 0
+    for t in (1400, 1600):
+        s.add_pose("a", CameraPoseMsg(t, "a", "world", _pose(0.0)), much_later)
+    s.add_image("a", ImageMsg(1500, "a", IMG), much_later)
+    assert s.pop(much_later).stamp_ns == 1500  # no new info needed
+
+
 def test_queued_bytes_are_bounded_latest_win():
     big = np.zeros((100, 100, 3), np.uint8)  # 30 kB
     s = _sync(max_queued_bytes=100_000, image_queue=10)
