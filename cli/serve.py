@@ -239,7 +239,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             port = s.getsockname()[1]
         settings = settings.model_copy(update={"listen": [f"tcp/127.0.0.1:{port}"]})
     run_demo(recording, settings, keep_serving=args.serve)
-    return 0
+    # the daemon has stopped and its Zenoh session is closed: leave as serve does, without the
+    # interpreter's finalization, where Zenoh's native threads can abort the process
+    _leave(0)
+    return 0  # not reached
 
 
 def register(subparsers) -> None:
