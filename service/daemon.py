@@ -72,6 +72,7 @@ class Daemon:
             ros2=self.ros2,
             on_image_without_info=self.request_info,
             on_decoded=self._wake_front_end,
+            clock=now_ns,
         )
         self.sync = self.intake.sync
         self.ingest_dropped = self.intake.dropped  # messages dropped before decoding

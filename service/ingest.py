@@ -20,6 +20,9 @@ What one camera sends never costs another camera its messages:
 - Images: at most ``images_per_camera`` per lane (the oldest dropped: the latest frames win),
   and ``max_bytes`` of payloads waiting in all lanes together; beyond, the oldest image of the
   lane holding the most image bytes is dropped, so a flooding camera pays for its own flood.
+- The images of a camera that has sent no info yet (``has_info``) are decoded only when no
+  camera with its info has an image waiting: they cannot be used before their info comes,
+  and a flood from camera ids that never send one costs a working camera nothing.
 - All lanes together hold at most ``max_messages``; beyond, the oldest message of the lane
   holding the most messages is dropped.
 
@@ -33,6 +36,7 @@ import heapq
 import itertools
 import threading
 from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 KINDS = ("info", "pose", "image")  # the order a lane serves them in
@@ -79,12 +83,18 @@ class _Lane:
 
 
 class FairIngest:
-    def __init__(self, config: IngestConfig | None = None, dropped: Counter | None = None):
+    def __init__(
+        self,
+        config: IngestConfig | None = None,
+        dropped: Counter | None = None,
+        has_info: Callable[[str], bool] | None = None,
+    ):
         self.config = config or IngestConfig()
         self.dropped = Counter() if dropped is None else dropped
+        self._has_info = has_info  # None: every camera counts as having its info
         self._cond = threading.Condition()
         self._lanes: OrderedDict[str, _Lane] = OrderedDict()  # least recently seen first
-        self._heap: list[tuple[float, int, str]] = []  # (finish, version, cam)
+        self._heap: list[tuple[int, float, int, str]] = []  # (rank, finish, version, cam)
         self._versions = itertools.count()  # also the order of ties
         self._now = 0.0  # the system's virtual time: the clock of the last lane served
         self._recent_images: deque[float] = deque(maxlen=_RECENT_IMAGES)
@@ -168,14 +178,19 @@ class FairIngest:
             return max(self._recent_images, default=0.0)
         return 0.0
 
+    def _turn(self, cam_id: str, lane: _Lane, kind: str) -> tuple[int, float]:
+        """(rank, finish) of the lane's next message: rank 1 for an image of a camera that has
+        sent no info yet (it cannot be used before its info comes), 0 otherwise."""
+        waits = kind == "image" and self._has_info is not None and not self._has_info(cam_id)
+        return int(waits), lane.clock + self._expected(lane, kind)
+
     def _schedule(self, cam_id: str, lane: _Lane) -> None:
         """(Re)place the lane in the heap by when its next message would finish."""
         lane.version = next(self._versions)
         kind = lane.head()
         if kind is None or lane.busy:
             return
-        finish = lane.clock + self._expected(lane, kind)
-        heapq.heappush(self._heap, (finish, lane.version, cam_id))
+        heapq.heappush(self._heap, (*self._turn(cam_id, lane, kind), lane.version, cam_id))
 
     # ------------------------------------------------------------------ consumers
     def get(self, timeout: float | None = None):
@@ -194,16 +209,17 @@ class FairIngest:
 
     def _next(self):
         while self._heap:
-            finish, version, cam_id = heapq.heappop(self._heap)
+            rank, finish, version, cam_id = heapq.heappop(self._heap)
             lane = self._lanes.get(cam_id)
             if lane is None or version != lane.version or lane.busy:
                 continue  # stale entry
             kind = lane.head()
             if kind is None:  # emptied by drops
                 continue
-            if self._heap and lane.clock + self._expected(lane, kind) > self._heap[0][0]:
+            if self._heap and self._turn(cam_id, lane, kind) > self._heap[0][:2]:
                 # expected dearer since it was queued (a new lane, once images of late were
-                # found dear): it waits for the lanes that would now finish first
+                # found dear), or its camera's info came meanwhile: it waits for the lanes
+                # that would now finish first
                 self._schedule(cam_id, lane)
                 continue
             item, nbytes = lane.pop(kind)

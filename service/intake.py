@@ -66,6 +66,9 @@ class Intake:
         on_image_without_info: called with the camera id of an image whose camera has sent no
             info yet (the daemon asks the camera for it).
         on_decoded: called after each message given to the synchroniser (wakes the front end).
+        clock: the arrival clock now (ns), read when an image reaches the synchroniser: its wait
+            for a pose counts from then, not from its arrival. None (replay): the arrival time,
+            where decoding takes no time on the log's clock.
     """
 
     def __init__(
@@ -79,6 +82,7 @@ class Intake:
         ros2=None,
         on_image_without_info: Callable[[str], None] | None = None,
         on_decoded: Callable[[], None] | None = None,
+        clock: Callable[[], int] | None = None,
     ):
         self.keys = keys
         self.sync = sync
@@ -88,8 +92,9 @@ class Intake:
         self.ros2 = ros2
         self.on_image_without_info = on_image_without_info
         self.on_decoded = on_decoded
+        self.clock = clock
         self.dropped: Counter = Counter()  # messages dropped before decoding, by reason
-        self.queue = FairIngest(ingest, dropped=self.dropped)
+        self.queue = FairIngest(ingest, dropped=self.dropped, has_info=sync.has_info)
         self.images_received = 0
 
     # ------------------------------------------------------------------ receiving
@@ -175,7 +180,8 @@ class Intake:
         elif kind == "pose":
             self.sync.add_pose(cam_id, decoded, msg.arrival_ns)
         else:
-            self.sync.add_image(cam_id, decoded, msg.arrival_ns)
+            now = msg.arrival_ns if self.clock is None else self.clock()
+            self.sync.add_image(cam_id, decoded, now, msg.arrival_ns)
             if self.on_image_without_info is not None and not self.sync.has_info(cam_id):
                 self.on_image_without_info(cam_id)
         if self.on_decoded is not None:

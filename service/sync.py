@@ -106,7 +106,8 @@ def interpolate_pose(t0: int, T0: np.ndarray, t1: int, T1: np.ndarray, t: int) -
 @dataclass
 class _Waiting:
     msg: ImageMsg
-    arrival_ns: int
+    arrival_ns: int  # received (the latency's start)
+    queued_ns: int  # reached the synchroniser (the wait for its info and pose starts here)
 
 
 @dataclass
@@ -276,8 +277,15 @@ class FrameSynchronizer:
             cam.add_pose(msg.stamp_ns, msg.T_world_cam)
             return True
 
-    def add_image(self, cam_id: str, msg: ImageMsg, now_ns: int = 0) -> bool:
-        """Queue an image; False when it was dropped at once (counted by reason)."""
+    def add_image(
+        self, cam_id: str, msg: ImageMsg, now_ns: int = 0, arrival_ns: int | None = None
+    ) -> bool:
+        """Queue an image; False when it was dropped at once (counted by reason).
+
+        now_ns: the caller's clock now; the wait for the image's info and pose counts from it,
+        so that the time an image spent waiting for a decoder (a flood of other cameras' images
+        ahead of it) never makes it miss a pose that is on its way. arrival_ns: when it was
+        received (its latency counts from it); None: ``now_ns``."""
         with self._lock:
             if self._future(msg.stamp_ns, now_ns):
                 self.dropped["future_stamp"] += 1
@@ -317,7 +325,7 @@ class FrameSynchronizer:
                 total -= victim.images.pop(0).msg.image.nbytes
                 self.dropped["memory"] += 1
             k = bisect.bisect([w.msg.stamp_ns for w in cam.images], stamp)
-            cam.images.insert(k, _Waiting(msg, now_ns))
+            cam.images.insert(k, _Waiting(msg, now_ns if arrival_ns is None else arrival_ns, now_ns))
             while len(cam.images) > self.config.image_queue:
                 cam.images.pop(0)
                 self.dropped["queue_full"] += 1
@@ -335,7 +343,7 @@ class FrameSynchronizer:
             for cid, cam in self._cams.items():
                 while cam.images:
                     head = cam.images[0]
-                    waited = now_ns - head.arrival_ns
+                    waited = now_ns - head.queued_ns
                     if cam.info is None:
                         if waited > self.config.wait_ns:
                             cam.images.pop(0)

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 
 from posefuse.service.codec import encode_camera_info, encode_camera_pose, encode_image
+from posefuse.service.settings import put_camera_message
 
 
 def free_port() -> int:
@@ -152,7 +153,8 @@ def start_router(port: int):
 
 
 class FakeCamera:
-    """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given."""
+    """Publishes a camera's info, poses and JPEG frames (of noise) with stamps it is given, put
+    as docs/protocol.md asks of a camera driver (a busy link delays them, never drops them)."""
 
     def __init__(self, session, cell: str, cam_id: str, seed: int = 0):
         self.session = session
@@ -176,18 +178,20 @@ class FakeCamera:
         if self.info_server is None:
             self.info_server = InfoServer(self.session)
         self.info_server.publish(self.key("info"), payload)
-        self.session.put(self.key("info"), payload)
+        put_camera_message(self.session, self.key("info"), payload)
 
     def pose(self, stamp: int) -> None:
         T = np.eye(4)
         T[2, 3] = -0.5
-        self.session.put(self.key("pose"), encode_camera_pose(stamp, self.cam_id, T))
+        put_camera_message(
+            self.session, self.key("pose"), encode_camera_pose(stamp, self.cam_id, T)
+        )
 
     def image_only(self, stamp: int, image=None) -> None:
         image = self.image if image is None else image
         self.seq += 1
         payload = encode_image(stamp, self.cam_id, image, "jpeg", 80, seq=self.seq)
-        self.session.put(self.key("image"), payload)
+        put_camera_message(self.session, self.key("image"), payload)
 
     def frame(self, stamp: int) -> None:
         """A pose at the stamp, then the image."""

@@ -132,3 +132,26 @@ def test_lanes_are_bounded_idle_ones_seen_longest_ago_leave():
         cam, *_ = ingest.get_nowait()
         ingest.done(cam, 0.001)
     assert len(ingest._lanes) <= 8
+
+
+def test_images_of_cameras_without_info_wait_for_those_with_it():
+    """15 new camera ids flood images and never send an info; cam0, with its info, starts
+    sending after them: each of its images is decoded next, and the flood once cam0 is done.
+    A camera whose info comes meanwhile is served in the first rank from then on."""
+    with_info = {"cam0"}
+    ingest = FairIngest(has_info=with_info.__contains__)
+    for k in range(30):
+        ingest.put(f"flood{k % 15}", "image", f"f{k}", 1000)
+    ingest.put("cam0", "image", "c0", 1000)
+    order = []
+    while (got := ingest.get_nowait()) is not None:
+        cam, _, item = got
+        order.append(item)
+        ingest.done(cam, 0.4 if cam.startswith("flood") else 0.01)
+        if len(order) == 2:  # cam0 goes on sending, and flood3 sends its info, during the flood
+            ingest.put("cam0", "image", "c1", 1000)
+            with_info.add("flood3")
+            ingest.put("flood3", "info", "i3", 10)
+    assert order[0] == "c0" and order[1].startswith("f")  # before: a whole round of f, then c0
+    assert order[2:4] == ["i3", "c1"] and order[4] == "f3"  # flood3's image, with its info
+    assert len(order) == 33 and ingest.pending() == 0

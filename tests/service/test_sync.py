@@ -293,3 +293,20 @@ def test_every_camera_gets_its_share_when_the_estimator_falls_behind():
     mean = sum(served.values()) / len(cams)
     assert mean == cycles * 2 / len(cams)
     assert all(abs(n - mean) <= 0.2 * mean for n in served.values()), served
+
+
+def test_the_wait_for_a_pose_counts_from_the_synchroniser_not_from_arrival():
+    """An image that spent 2 s waiting for a decoder (behind another camera's flood) reaches the
+    synchroniser just before its pose does: it waits for that pose, and its latency still counts
+    from its arrival."""
+    s = _sync()
+    _ready_camera(s, "a")
+    s.add_image("a", ImageMsg(500, "a", IMG), now_ns=2000 * MS, arrival_ns=0)
+    assert s.pop(2010 * MS) is None and s.dropped["no_pose"] == 0
+    s.add_pose("a", CameraPoseMsg(500, "a", "world", _pose(0.0)), 2020 * MS)
+    frame = s.pop(2030 * MS)
+    assert frame is not None and frame.arrival_ns == 0
+    # the wait itself is still bounded: half a second after it reached the synchroniser
+    s.add_image("a", ImageMsg(600, "a", IMG), now_ns=3000 * MS, arrival_ns=1000 * MS)
+    assert s.pop(3400 * MS) is None
+    assert s.pop(3600 * MS) is None and s.dropped["no_pose"] == 1
