@@ -325,7 +325,9 @@ class FrameSynchronizer:
                 total -= victim.images.pop(0).msg.image.nbytes
                 self.dropped["memory"] += 1
             k = bisect.bisect([w.msg.stamp_ns for w in cam.images], stamp)
-            cam.images.insert(k, _Waiting(msg, now_ns if arrival_ns is None else arrival_ns, now_ns))
+            cam.images.insert(
+                k, _Waiting(msg, now_ns if arrival_ns is None else arrival_ns, now_ns)
+            )
             while len(cam.images) > self.config.image_queue:
                 cam.images.pop(0)
                 self.dropped["queue_full"] += 1
