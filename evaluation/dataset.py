@@ -4,12 +4,22 @@ with ``scene_camera.json``, ``scene_gt.json``, ``scene_gt_info.json``, ``rgb/``,
 
 Poses come out in metres (BOP stores millimetres). ``cam_R_w2c``/``cam_t_w2c`` of
 ``scene_camera.json`` are ``T_cam_world``; a view without them has no known camera pose, which a
-multi-view estimator cannot use, so it is refused with the file and key named.
+multi-view estimator cannot use, so it is refused with the file and key named (its ground truth
+alone is still read by :meth:`BopScene.ground_truth`: that is how BOP's single-image test sets
+become multi-view scenes, see ``evaluation.multiview``).
+
+Rotations must be rotations. BOP's real datasets store them orthonormal only to about 1e-2
+(LM-O: ``max |R R^T - I|`` up to 9.4e-3): a rotation within ``ORTHONORMAL_REPAIR`` of
+orthonormal is replaced by the nearest rotation (in the Frobenius norm, scipy's
+``Rotation.from_matrix``) and counted, one
+:class:`~posefuse.estimator.core.errors.DatasetWarning` per file naming it and how many; beyond
+that, or with a determinant below zero, the file is refused.
 """
 
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -17,9 +27,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from posefuse.estimator.core.camera import Camera
-from posefuse.estimator.core.errors import DatasetError
+from posefuse.estimator.core.errors import DatasetError, DatasetWarning
 from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog, load_catalog
 
@@ -76,9 +87,42 @@ def _matrix(entry: dict, key: str, shape: tuple[int, ...], path: Path, where: st
     return values.reshape(shape)
 
 
+ORTHONORMAL_EXACT = 1e-5  # max |R R^T - I| of a rotation used as stored
+ORTHONORMAL_REPAIR = 1e-2  # up to this, projected to the nearest rotation and counted
+
+
+def _repair_rotations(path: Path, entries: dict, key: str) -> dict:
+    """Replace, in a parsed scene file, each rotation ``key`` stored orthonormal only to within
+    ``ORTHONORMAL_REPAIR`` by the nearest rotation; one DatasetWarning for the file. Malformed
+    entries and rotations further off are left for the view that reads them to refuse."""
+    count, worst = 0, 0.0
+    for value in entries.values():
+        for entry in value if isinstance(value, list) else [value]:
+            try:
+                R = np.asarray(entry[key], dtype=np.float64).reshape(3, 3)
+            except (KeyError, TypeError, ValueError):
+                continue
+            if not np.all(np.isfinite(R)) or np.linalg.det(R) <= 0:
+                continue
+            off = float(np.abs(R @ R.T - np.eye(3)).max())
+            if ORTHONORMAL_EXACT < off <= ORTHONORMAL_REPAIR:
+                entry[key] = Rotation.from_matrix(R).as_matrix().reshape(-1).tolist()  # the nearest
+                count, worst = count + 1, max(worst, off)
+    if count:
+        reason = (
+            f"{count} rotations ({key}) orthonormal only to {worst:.1e} (up to "
+            f"{ORTHONORMAL_REPAIR:g} accepted) were replaced by the nearest rotation"
+        )
+        warnings.warn(DatasetWarning(path, count, reason), stacklevel=2)
+    return entries
+
+
 def _rigid(R: np.ndarray, t_mm: np.ndarray, path: Path, where: str) -> np.ndarray:
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
-        raise DatasetError(path, f"{where}: rotation is not a rotation matrix")
+    off = float(np.abs(R @ R.T - np.eye(3)).max())
+    if off > ORTHONORMAL_EXACT or np.linalg.det(R) < 0:
+        raise DatasetError(
+            path, f"{where}: rotation is not a rotation matrix (max |R R^T - I| = {off:.1e})"
+        )
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t_mm / 1000.0
@@ -95,11 +139,13 @@ class BopScene:
 
     @cached_property
     def _camera_json(self) -> dict:
-        return _read_json(self.path / "scene_camera.json")
+        path = self.path / "scene_camera.json"
+        return _repair_rotations(path, _read_json(path), "cam_R_w2c")
 
     @cached_property
     def _gt_json(self) -> dict:
-        return _read_json(self.path / "scene_gt.json")
+        path = self.path / "scene_gt.json"
+        return _repair_rotations(path, _read_json(path), "cam_R_m2c")
 
     @cached_property
     def _gt_info_json(self) -> dict:
@@ -113,22 +159,44 @@ class BopScene:
         except ValueError:
             raise DatasetError(self.path / "scene_camera.json", "keys must be image ids") from None
 
-    def view(self, im_id: int) -> BopView:
-        cam_path = self.path / "scene_camera.json"
+    def stored_camera(self, im_id: int) -> dict:
+        """One image's entry of ``scene_camera.json`` as stored (rotations repaired)."""
         entry = self._camera_json.get(str(im_id))
         if entry is None:
-            raise DatasetError(cam_path, f"no image {im_id} in scene {self.scene_id}")
+            raise DatasetError(
+                self.path / "scene_camera.json", f"no image {im_id} in scene {self.scene_id}"
+            )
+        return entry
+
+    def stored_gt_info(self, im_id: int) -> list[dict]:
+        """One image's entries of ``scene_gt_info.json`` as stored ([] where it has none)."""
+        return list(self._gt_info_json.get(str(im_id), []))
+
+    def intrinsics(self, im_id: int) -> Camera:
+        """The camera of one image (``cam_K`` and the dataset's image size)."""
+        cam_path = self.path / "scene_camera.json"
+        entry = self.stored_camera(im_id)
+        K = _matrix(entry, "cam_K", (3, 3), cam_path, f"image {im_id}")
+        width, height = self.dataset.image_size
+        try:
+            return Camera(K, width, height)
+        except ValueError as exc:
+            raise DatasetError(cam_path, f"image {im_id}: {exc}") from None
+
+    def view(self, im_id: int) -> BopView:
+        camera = self.intrinsics(im_id)
+        cam_path = self.path / "scene_camera.json"
+        entry = self._camera_json[str(im_id)]
         where = f"image {im_id}"
-        K = _matrix(entry, "cam_K", (3, 3), cam_path, where)
         R = _matrix(entry, "cam_R_w2c", (3, 3), cam_path, where)
         t = _matrix(entry, "cam_t_w2c", (3,), cam_path, where)
         T_cam_world = _rigid(R, t, cam_path, where)
-        width, height = self.dataset.image_size
-        try:
-            camera = Camera(K, width, height)
-        except ValueError as exc:
-            raise DatasetError(cam_path, f"{where}: {exc}") from None
         T_world_cam = invert(T_cam_world)
+        return BopView(self.scene_id, im_id, camera, T_world_cam, self.ground_truth(im_id))
+
+    def ground_truth(self, im_id: int) -> tuple[GroundTruth, ...]:
+        """The annotated instances of one image (T_cam_obj), whether or not its camera pose is
+        known (BOP's single-image test sets store none)."""
         gt_path = self.path / "scene_gt.json"
         gts_raw = self._gt_json.get(str(im_id), [])
         infos = self._gt_info_json.get(str(im_id), [])
@@ -160,7 +228,7 @@ class BopScene:
                     px_count_visib=int(info.get("px_count_visib", -1)),
                 )
             )
-        return BopView(self.scene_id, im_id, camera, T_world_cam, tuple(gts))
+        return tuple(gts)
 
     def views(self) -> Iterator[BopView]:
         for im_id in self.im_ids:

@@ -41,6 +41,18 @@ class DatasetError(PosefuseError):
         super().__init__(f"{self.path}: {reason}")
 
 
+class DatasetWarning(UserWarning):
+    """A BOP file read with a repair the user should know of (for example rotations stored
+    orthonormal only to 1e-2, as BOP's real datasets have them, projected to the nearest
+    rotation). ``path`` names the file, ``count`` the entries repaired."""
+
+    def __init__(self, path: str | Path, count: int, reason: str):
+        self.path = str(path)
+        self.count = count
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+
 class ResultsError(PosefuseError):
     """A BOP results CSV with a malformed row. ``row`` is 1-based and counts the header."""
 
