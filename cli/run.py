@@ -266,6 +266,7 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
             drop_rate=args.drop_rate,
             false_positive_rate=args.false_positive_rate,
             with_masks=rotation,
+            masks=args.oracle_masks,
             seed=args.seed,
         )
     except ValueError as exc:
@@ -456,6 +457,13 @@ def register(subparsers) -> None:
         type=float,
         default=ORACLE_FALSE_POSITIVE_RATE,
         help="oracle: false detections per true one",
+    )
+    p.add_argument(
+        "--oracle-masks",
+        choices=("silhouette", "box"),
+        default="silhouette",
+        help="oracle: the true silhouettes as masks, or the filled visible boxes (the rotation "
+        "step then reads the part's outline from the image's own edges)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the front end's noise")
     p.add_argument("--translation-only", action="store_true", help="skip the rotation step")

@@ -2,7 +2,10 @@
 
 It stands in for the network while the back end is measured: each annotated instance that is
 visible enough gives a detection whose center is the true projected model origin plus Gaussian
-noise of ``center_sigma_px`` (reported as its covariance), the visible box and mask; a fraction
+noise of ``center_sigma_px`` (reported as its covariance), the visible box and mask (the
+ground-truth silhouette, or with ``masks="box"`` the filled visible box, so that the rotation
+step must find the part's outline in the image's own edges, as behind a detector that gives
+boxes); a fraction
 ``drop_rate`` of them is dropped, and false positives of random classes are added at a rate of
 ``false_positive_rate`` per true detection. The randomness of one view depends only on
 ``(seed, scene_id, im_id)``, so any order of views gives the same detections.
@@ -23,10 +26,13 @@ class OracleConfig:
     drop_rate: float = 0.0
     false_positive_rate: float = 0.0
     min_visib: float = 0.1  # instances less visible than this are not detected
-    with_masks: bool = True  # read mask_visib PNGs (the rotation step needs them)
+    with_masks: bool = True  # give masks (the rotation step needs them)
+    masks: str = "silhouette"  # "silhouette" (mask_visib PNGs) or "box" (the filled bbox_visib)
     seed: int = 0
 
     def __post_init__(self) -> None:
+        if self.masks not in ("silhouette", "box"):
+            raise ValueError(f"masks must be 'silhouette' or 'box', got {self.masks!r}")
         if not self.center_sigma_px > 0:
             raise ValueError(f"center_sigma_px must be positive, got {self.center_sigma_px}")
         for name in ("drop_rate", "false_positive_rate", "min_visib"):
@@ -67,8 +73,14 @@ class OracleFrontend:
             uv = camera.project(t)
             if not camera.contains(uv[None])[0]:
                 continue
-            mask = scene.load_mask_visib(view.im_id, gt.gt_idx) if cfg.with_masks else None
             bbox = np.asarray(gt.bbox_visib, dtype=np.float64)
+            mask = None
+            if cfg.with_masks and cfg.masks == "box":
+                mask = np.zeros((camera.height, camera.width), bool)
+                x, y, w, h = gt.bbox_visib
+                mask[y : y + h, x : x + w] = True
+            elif cfg.with_masks:
+                mask = scene.load_mask_visib(view.im_id, gt.gt_idx)
             sizes.append(bbox[2:])
             out.append((Detection(gt.obj_id, bbox, uv + noise, cov, mask, 1.0), gt.gt_idx))
         n_false = rng.binomial(len(out), cfg.false_positive_rate) if out else 0

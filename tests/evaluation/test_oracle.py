@@ -46,3 +46,19 @@ def test_drops_and_false_positives(small_dataset_root):
     noisy = OracleConfig(false_positive_rate=1.0, with_masks=False)
     pairs = [p for v in views for p in OracleFrontend(ds, noisy).detect_with_truth(v)]
     assert sum(k == -1 for _, k in pairs) == n_true
+
+
+def test_box_masks_are_the_filled_visible_boxes(small_dataset_root):
+    ds = load_dataset(small_dataset_root)
+    silhouettes = OracleFrontend(ds, OracleConfig(seed=1))
+    boxes = OracleFrontend(ds, OracleConfig(seed=1, masks="box"))
+    view = next(iter(ds.views()))
+    for (s, k), (b, j) in zip(
+        silhouettes.detect_with_truth(view), boxes.detect_with_truth(view), strict=True
+    ):
+        assert k == j and np.array_equal(s.center_uv, b.center_uv)
+        x, y, w, h = view.gts[k].bbox_visib
+        assert b.mask.sum() == w * h and b.mask[y : y + h, x : x + w].all()
+        assert (b.mask | ~s.mask).all()  # the silhouette lies inside its box
+    with np.testing.assert_raises_regex(ValueError, "masks must be 'silhouette' or 'box'"):
+        OracleConfig(masks="boxes")
