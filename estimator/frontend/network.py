@@ -68,6 +68,25 @@ def catalog_hash(catalog) -> str:
     return h.hexdigest()[:16]
 
 
+def _cov_by_score(rows) -> tuple[tuple[float, float], ...]:
+    """The card's ``center_cov_by_score``: ascending upper scores in (0, 1], factors >= 1."""
+    out = tuple((float(upper), float(factor)) for upper, factor in rows)
+    uppers = [u for u, _ in out]
+    if uppers != sorted(uppers) or not all(0 < u <= 1 for u in uppers):
+        raise ValueError(f"center_cov_by_score: upper scores must ascend in (0, 1], got {uppers}")
+    if not all(np.isfinite(f) and f >= 1 for _, f in out):
+        raise ValueError("center_cov_by_score: factors must be finite and >= 1")
+    return out
+
+
+def score_factor(cov_by_score: tuple[tuple[float, float], ...], score: float) -> float:
+    """The covariance factor of a detection's score (1 without a calibration, or above it)."""
+    for upper, factor in cov_by_score:
+        if score < upper:
+            return factor
+    return cov_by_score[-1][1] if cov_by_score else 1.0
+
+
 @dataclass(frozen=True)
 class ModelCard:
     classes: tuple[tuple[int, str], ...]  # (obj_id, name) in output order
@@ -78,6 +97,10 @@ class ModelCard:
     mean: tuple[float, float, float] = MEAN
     std: tuple[float, float, float] = STD
     cov_scale: float = 1.0
+    # ((upper score, factor), ...) ascending: the centre covariance of a detection scored
+    # below ``upper`` (and at least the previous one) is multiplied by ``factor``, as measured
+    # on calibration sets (bench.center_calibration); empty: as voted
+    cov_by_score: tuple[tuple[float, float], ...] = ()
     extra: dict | None = None  # training data, metrics: free-form, for people
     # "two_stage": boxes from this model, centers from ``two_stage["crop_model"]`` beside it
     # (see estimator.frontend.two_stage); "center_voting": one network over the whole frame
@@ -93,6 +116,11 @@ class ModelCard:
             "output_stride": self.output_stride,
             "normalisation": {"mean": list(self.mean), "std": list(self.std)},
             "voting_cov_scale": self.cov_scale,
+            **(
+                {"center_cov_by_score": [list(p) for p in self.cov_by_score]}
+                if self.cov_by_score
+                else {}
+            ),
             "kind": self.kind,
             **({"two_stage": self.two_stage} if self.two_stage else {}),
             **(self.extra or {}),
@@ -109,6 +137,7 @@ class ModelCard:
                 "output_stride",
                 "normalisation",
                 "voting_cov_scale",
+                "center_cov_by_score",
                 "kind",
                 "two_stage",
             }
@@ -127,6 +156,7 @@ class ModelCard:
                 mean=tuple(data["normalisation"]["mean"]),
                 std=tuple(data["normalisation"]["std"]),
                 cov_scale=float(data.get("voting_cov_scale", 1.0)),
+                cov_by_score=_cov_by_score(data.get("center_cov_by_score", [])),
                 extra={k: v for k, v in data.items() if k not in known},
                 kind=kind,
                 two_stage=dict(two_stage) if kind == "two_stage" else None,
@@ -271,7 +301,21 @@ class NetworkFrontend:
     def detect(self, image: np.ndarray, stamp_seed: int = 0) -> list[Detection]:
         """Detections in one image (RGB uint8), in a fixed order (class, then votes)."""
         if self.crop_session is not None:
-            return self._detect_two_stage(image, stamp_seed)
+            return self._calibrated(self._detect_two_stage(image, stamp_seed))
+        return self._calibrated(self._detect_one_stage(image, stamp_seed))
+
+    def _calibrated(self, dets: list[Detection]) -> list[Detection]:
+        """The card's covariance factor by score applied to each detection's centre."""
+        if not self.card.cov_by_score:
+            return dets
+        return [
+            dataclasses.replace(
+                d, center_cov=d.center_cov * score_factor(self.card.cov_by_score, d.score)
+            )
+            for d in dets
+        ]
+
+    def _detect_one_stage(self, image: np.ndarray, stamp_seed: int) -> list[Detection]:
         out = self.infer(image)
         n_classes = len(self.card.classes)
         logits, vectors = out[: n_classes + 1], out[n_classes + 1 :]
