@@ -39,7 +39,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise PosefuseError(f"--crop-width: {args.crop_width}: must be at least 1")
     if args.vote_loss is not None and args.vote_loss < 0:
         raise PosefuseError(f"--vote-loss: {args.vote_loss}: must be at least 0")
-    if args.threads < 1:
+    if args.threads is not None and args.threads < 1:
         raise PosefuseError(f"--threads: {args.threads}: must be at least 1")
     config = TrainConfig(
         n_scenes=args.scenes,
@@ -188,8 +188,9 @@ def register(subparsers) -> None:
     p.add_argument(
         "--threads",
         type=int,
-        default=2,
-        help="torch threads of the training loop (1 leaves a core to other work)",
+        default=None,
+        help="torch threads of the training loop (default: the cores other processes leave "
+        "free, looked at every few steps)",
     )
     p.add_argument(
         "--seed",

@@ -65,6 +65,9 @@ CHECKPOINT_VERSION = 1
 __all__ = ["TRAIN_SEED_BASE", "TrainConfig", "profile_of", "render_scene", "train"]
 
 
+THREAD_CHECK_STEPS = 10  # steps between two looks at the cores other processes leave
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     n_scenes: int = 200
@@ -90,7 +93,9 @@ class TrainConfig:
     checkpoint_minutes: float = 30.0
     tune: tuple[str, ...] = ()  # BOP datasets scored at each checkpoint (the learning curve)
     bf16: bool = True  # bfloat16 autocast with channels_last (measured faster on this CPU)
-    threads: int = 2
+    # torch threads of the loop; None: the cores other processes leave free, measured every
+    # THREAD_CHECK_STEPS steps (sim.core_share)
+    threads: int | None = None
     resume: str | None = None
     init: str | None = None  # a checkpoint of another catalog to fine-tune from
     run_steps: int | None = None  # this run stops after this many steps (the schedule goes on)
@@ -498,7 +503,11 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     """Render (or reuse), train (or resume), export; returns the model card's dict."""
     import torch
 
-    torch.set_num_threads(config.threads)
+    from posefuse.sim.core_share import CoreShare
+
+    share = CoreShare() if config.threads is None else None
+    threads = config.threads or share.cores  # until the first look, in the loop
+    torch.set_num_threads(threads)
     catalog = load_catalog(catalog_dir)
     model_path = Path(model_path)
     model_path.parent.mkdir(parents=True, exist_ok=True)
@@ -647,6 +656,8 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     if config.run_steps is not None:
         total = min(total, step + config.run_steps)
     bar = tqdm(total=total, initial=step, desc="train", unit="step")
+    if share is not None:
+        share.others()  # the first look measures the loop, not the rendering before it
     nets.det.train()
     nets.crop.train()
     while step < total and time.time() < deadline:
@@ -656,8 +667,14 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         crop_b = crop_batch(ts, batch_config, rng, candidates)
         losses.append(nets.step(det_b, crop_b, config.schedule(step), gen))
         step += 1
+        if share is not None and step % THREAD_CHECK_STEPS == 0:
+            free = share.free()
+            if free != threads:  # the others' load changed: run on what they leave
+                threads = free
+                torch.set_num_threads(threads)
         if step % 20 == 0:
             m = {k: f"{np.mean([d[k] for d in losses[-20:]]):.3f}" for k in losses[-1]}
+            m["threads"] = str(threads)
             bar.set_postfix(m, refresh=False)
             bar.update(step - bar.n)
         if time.time() - last_ckpt > config.checkpoint_minutes * 60 and step < total:
