@@ -1,0 +1,154 @@
+"""Start and stop posefuse many times beside busy processes: every exit must be clean.
+
+python -m posefuse.bench.exit_loop [--demo 50] [--serve 20] [--busy 1]
+
+- ``--demo N``: ``posefuse demo`` N times in a row; each must exit 0 after printing its score
+  line ("... confirmed estimates within ADD-sym ...").
+- ``--serve N``: ``posefuse serve --state-dir DIR`` N times; each is sent a few frames of the
+  shipped demo recording's cameras, then SIGTERM (as systemd stops it) once they were
+  processed; each must exit 0 with its snapshot written and readable (its header line).
+
+``--busy`` processes spin beside all of it (a loaded cell PC). Prints a line per run and the
+exit codes counted; a non-zero count is printed with the run's last output lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import multiprocessing
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from posefuse.bench.service_latency import _free_port, _get
+
+
+def _spin(stop) -> None:
+    while not stop.is_set():
+        sum(range(10_000))
+
+
+def run_demo() -> tuple[int, str]:
+    proc = subprocess.run(
+        [sys.executable, "-m", "posefuse.cli", "demo"], capture_output=True, text=True
+    )
+    out = proc.stdout + proc.stderr
+    ok = proc.returncode == 0 and "confirmed estimates within ADD-sym" in out
+    return (proc.returncode if not ok or proc.returncode else 0), out
+
+
+def run_serve(state_dir: Path) -> tuple[int, str]:
+    """One serve: start, a few frames, SIGTERM; (exit code, or -1000 for no snapshot; output)."""
+    import zenoh
+
+    from posefuse.bench.service_latency import peer_config
+    from posefuse.service.recording import read_messages
+    from posefuse.service.resources import DEFAULT_RECORDING
+    from posefuse.service.settings import put_camera_message
+
+    zport, hport = _free_port(), _free_port()
+    log = tempfile.TemporaryFile("w+")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "posefuse.cli", "serve", "--cell", "posefuse"]
+        + ["--listen", f"tcp/127.0.0.1:{zport}", "--http-port", str(hport)]
+        + ["--state-dir", str(state_dir)],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    base = f"http://127.0.0.1:{hport}"
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if _get(f"{base}/readyz")["status"] == "ready":
+                break
+        except OSError:
+            time.sleep(0.3)
+    sent = 0
+    if proc.poll() is None:
+        with zenoh.open(peer_config(zport)) as session:
+            time.sleep(0.5)
+            for m in read_messages(DEFAULT_RECORDING):
+                if "/cam/" not in m.key:
+                    continue
+                put_camera_message(session, m.key, m.payload)
+                sent += m.key.endswith("/image")
+                if sent >= 4:
+                    break
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 60:
+                if _get(f"{base}/stats")["frames_handled"] >= sent:
+                    break
+                time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+    try:
+        code = proc.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        code = proc.wait()
+    log.seek(0)
+    out = log.read()
+    snapshot = state_dir / "estimator.state"
+    try:
+        with open(snapshot, "rb") as f:
+            json.loads(f.readline())
+    except (OSError, ValueError):
+        return (code or -1000), out
+    return code, out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--demo", type=int, default=50, help="demo runs")
+    parser.add_argument("--serve", type=int, default=20, help="serve start-stops")
+    parser.add_argument("--busy", type=int, default=1, help="processes spinning beside")
+    args = parser.parse_args(argv)
+    stop = multiprocessing.Event()
+    spinners = [multiprocessing.Process(target=_spin, args=(stop,)) for _ in range(args.busy)]
+    for p in spinners:
+        p.start()
+    codes: dict[str, collections.Counter] = {
+        "demo": collections.Counter(),
+        "serve": collections.Counter(),
+    }
+    try:
+        for k in range(args.demo):
+            t0 = time.monotonic()
+            code, out = run_demo()
+            codes["demo"][code] += 1
+            print(
+                f"demo {k + 1}/{args.demo}: exit {code} in {time.monotonic() - t0:.0f} s",
+                flush=True,
+            )
+            if code:
+                print("\n".join(out.splitlines()[-15:]), flush=True)
+        with tempfile.TemporaryDirectory() as state:
+            for k in range(args.serve):
+                t0 = time.monotonic()
+                code, out = run_serve(Path(state))
+                codes["serve"][code] += 1
+                print(
+                    f"serve {k + 1}/{args.serve}: exit {code} in {time.monotonic() - t0:.0f} s",
+                    flush=True,
+                )
+                if code:
+                    print("\n".join(out.splitlines()[-15:]), flush=True)
+    finally:
+        stop.set()
+        for p in spinners:
+            p.join()
+    for what, counted in codes.items():
+        if sum(counted.values()):
+            print(
+                f"{what}: exit codes {dict(sorted(counted.items()))} "
+                f"of {sum(counted.values())} runs"
+            )
+    return 0 if all(set(c) <= {0} for c in codes.values()) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
