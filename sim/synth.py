@@ -71,10 +71,9 @@ def render_scene_views(
 
 
 def _part_material(catalog: Catalog, obj_id: int):
-    from posefuse.estimator.rotation.render import CHROME, METAL
+    from posefuse.sim.materials import part_material
 
-    # Screws are chromed in ROBI; the other parts are bare machined metal.
-    return CHROME if "screw" in catalog[obj_id].name else METAL
+    return part_material(catalog[obj_id])
 
 
 def generate_dataset(

@@ -33,7 +33,8 @@ import numpy as np
 from tqdm import tqdm
 
 from posefuse.estimator.core.objects import Catalog, load_catalog
-from posefuse.estimator.rotation.render import CHROME, METAL, Renderer
+from posefuse.estimator.rotation.render import Renderer
+from posefuse.sim.materials import part_material
 from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
 from posefuse.sim.sensor import SensorModel, apply_rgb
 from posefuse.sim.synth import BIN_ID, scene_seed
@@ -106,7 +107,7 @@ def _scene_renderer(catalog_dir: str, scene_index: int, views: int, seed_base: i
     scene = make_scene(catalog, spec, seed, FULL)
     if len(scene.instances) > 254:
         raise ValueError(f"scene {scene_index}: {len(scene.instances)} instances exceed uint8")
-    materials = [CHROME if "screw" in catalog[i.obj_id].name else METAL for i in scene.instances]
+    materials = [part_material(catalog[i.obj_id]) for i in scene.instances]
     meshes = [catalog[i.obj_id].mesh for i in scene.instances] + [scene.bin_mesh]
     poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
     ids = list(range(len(scene.instances))) + [BIN_ID]

@@ -6,8 +6,8 @@ between a dataset and its twin: the estimator's accuracy on both, side by side
 
 Each scene's objects are placed where its first view's ground truth puts them in the world
 (``T_world_cam @ T_cam_obj``: a multi-view scene's objects are at rest); nothing else is
-rendered (no table, no clutter). A part whose mesh has vertex colours is rendered in plastic of
-its mean colour, else in bare metal; two lights follow each camera (one from above it, one
+rendered (no table, no clutter). Parts are in ``sim.materials.part_material`` (plastic of a
+mesh's own colour); two lights follow each camera (one from above it, one
 beside it), so a world frame whose z is not up still gets lit from the front.
 """
 
@@ -18,37 +18,18 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from posefuse.estimator.core.objects import ObjectModel
 from posefuse.estimator.rotation.render import (
-    METAL,
     DirectionalLight,
     Lighting,
-    Material,
     Renderer,
     make_environment,
 )
 from posefuse.sim.bop_writer import SceneWriter, write_dataset_header
+from posefuse.sim.materials import part_material
 from posefuse.sim.sensor import SensorModel, apply_rgb
 
 # camera frame: x right, y down, z forward; directions point towards the light
 _LIGHTS_CAM = ((0.25, -0.7, -0.65, 1.0), (-0.8, -0.1, -0.6, 0.45))
-
-
-def plastic_of(model: ObjectModel) -> Material:
-    """Matte plastic of the mesh's mean vertex colour (linear RGB), or METAL without one."""
-    visual = model.mesh.visual
-    if getattr(visual, "kind", None) != "vertex":
-        return METAL
-    srgb = np.asarray(visual.vertex_colors, np.float64)[:, :3].mean(axis=0) / 255.0
-    linear = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-    return Material(
-        color=tuple(float(c) for c in linear),
-        diffuse=0.85,
-        specular=0.25,
-        shininess=30.0,
-        reflect=0.03,
-        fresnel0=0.04,
-    )
 
 
 def camera_lighting(T_world_cam: np.ndarray, environment: np.ndarray) -> Lighting:
@@ -80,7 +61,7 @@ def render_twin(
             renderer = Renderer(
                 [m.mesh for m in models],
                 [T for _, T in instances],
-                materials=[plastic_of(m) for m in models],
+                materials=[part_material(m) for m in models],
             )
             rng = np.random.default_rng([seed, scene_id])
             writer = SceneWriter(out / dataset.split, scene_id)

@@ -4,7 +4,8 @@ ground truth puts it."""
 import numpy as np
 
 from posefuse.evaluation.dataset import load_dataset
-from posefuse.sim.twin import plastic_of, render_twin
+from posefuse.sim.materials import part_material, plastic_of
+from posefuse.sim.twin import render_twin
 
 
 def test_the_twin_has_the_same_cameras_poses_and_visible_parts(small_dataset_root, tmp_path):
@@ -39,3 +40,4 @@ def test_a_mesh_with_vertex_colours_is_plastic_of_its_colour(robi_catalog):
     plastic = plastic_of(model)
     np.testing.assert_allclose(plastic.color, (1.0, 1.0, 0.0), atol=1e-6)
     assert plastic.reflect < 0.1 and plastic.diffuse > 0.5
+    assert part_material(model) == plastic  # what every render of parts uses
