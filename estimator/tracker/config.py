@@ -24,6 +24,13 @@ class TrackerConfig:
     # is hidden for a while as the camera moves, and evidence for it should outweigh its misses
     max_misses: int = 5
     max_misses_tentative: int = 2
+    # a confirmed track is published as confirmed only while the views that predicted it in
+    # view detected it at least this often (views seen / (seen + missed)), once it has missed
+    # ``support_after`` of them: in a pile a track founded on stray detections is predicted in
+    # view again and again and never seen; it falls back to tentative, and is dropped as one
+    # after max_misses_tentative misses in a row (0: never)
+    min_support: float = 0.0
+    support_after: int = 3
     border_margin_px: float = 2.0  # a box this close to the border is truncated
     founding: FoundingConfig = FoundingConfig()
     merging: MergeConfig = MergeConfig()
@@ -44,6 +51,11 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
             raise ValueError(f"invalid tracker config: {self}")
+        if not 0.0 <= self.min_support <= 1.0 or self.support_after < 1:
+            raise ValueError(
+                f"min_support must be in [0, 1] and support_after >= 1, got {self.min_support} "
+                f"and {self.support_after}"
+            )
 
     @classmethod
     def with_verification(cls, enabled: bool) -> TrackerConfig:

@@ -346,6 +346,8 @@ class MultiViewEstimator:
         for i, track in enumerate(tracks):
             if i not in matched_tracks and self._predicted_in_view(track, view):
                 track.misses += 1
+                track.missed_views += 1
+                self.book.review_support(track)
         new: list[HeldDetection] = []
         for jj, j in enumerate(det_idx):
             if jj in matched_dets:

@@ -80,7 +80,8 @@ class Track:
     estimate: TranslationEstimate
     first_stamp_ns: int
     last_stamp_ns: int
-    misses: int = 0
+    misses: int = 0  # consecutive views that predicted it in view and did not detect it
+    missed_views: int = 0  # all such views (a class attribute for snapshots before it)
     status: str = TENTATIVE
     detections: list[DetectionRef] = field(default_factory=list)
     refs: list[ViewRef] = field(default_factory=list)
@@ -210,6 +211,21 @@ class TrackBook:
         track.detections.append(DetectionRef(ref.stamp_ns, ref.index))
         if len(track.obs) >= self.config.confirm_views:
             track.status = CONFIRMED
+        self.review_support(track)
+
+    def supported(self, track: Track) -> bool:
+        """The views that predicted the track in view detected it often enough
+        (``TrackerConfig.min_support``), or too few have missed it to tell."""
+        missed = track.missed_views
+        if self.config.min_support <= 0 or missed < self.config.support_after:
+            return True
+        return track.views_seen / (track.views_seen + missed) >= self.config.min_support
+
+    def review_support(self, track: Track) -> None:
+        """A confirmed track the views no longer support falls back to tentative (and is
+        confirmed again once they do)."""
+        if track.status == CONFIRMED and not self.supported(track):
+            track.status = TENTATIVE
 
     def split_tracks(self, keys: list[str]) -> list[tuple[str, str]]:
         """Views a track cannot explain leave it (:mod:`estimator.translation.splitting`); two or
@@ -290,6 +306,7 @@ class TrackBook:
         keep.first_stamp_ns = min(keep.first_stamp_ns, gone.first_stamp_ns)
         keep.last_stamp_ns = max(keep.last_stamp_ns, gone.last_stamp_ns)
         keep.misses = min(keep.misses, gone.misses)
+        keep.missed_views = min(keep.missed_views, gone.missed_views)
         if gone.status == CONFIRMED:
             keep.status = CONFIRMED
         keep.pending = sorted(keep.pending + gone.pending, key=lambda p: p.stamp_ns)

@@ -173,3 +173,29 @@ def test_degenerate_input(robi_catalog):
         est.update(_frame(T_wc), [ok])
     for t in est.tracks.values():
         assert np.all(np.isfinite(t.estimate.t_world_obj)) and np.all(np.isfinite(t.estimate.cov))
+
+
+def test_a_track_the_views_stop_supporting_falls_back_to_tentative(robi_catalog, runs):
+    """min_support 0.6 after 3 misses: a track seen in 2 views, then predicted in view and not
+    detected 3 times (2 / 5 = 0.4), is no longer confirmed: tentative, and a tentative track
+    missed twice in a row is dropped."""
+    seq = runs[2][0]
+    config = TrackerConfig(max_misses=20, min_support=0.6, support_after=3)
+    est = MultiViewEstimator(robi_catalog, config)
+    for view in seq.views[:2]:
+        est.update(view.frame, view.detections)
+    two = {k for k, t in est.tracks.items() if t.status == CONFIRMED and t.views_seen == 2}
+    assert two
+    for view in seq.views[2:5]:
+        est.update(view.frame, [])
+    assert all(k not in est.tracks or est.tracks[k].status != CONFIRMED for k in two)
+    assert set(est.last_report.dropped) | {k for k in two if k not in est.tracks}
+    # without the rule the same tracks stay confirmed
+    plain = MultiViewEstimator(robi_catalog, TrackerConfig(max_misses=20))
+    for view in seq.views[:2]:
+        plain.update(view.frame, view.detections)
+    for view in seq.views[2:5]:
+        plain.update(view.frame, [])
+    assert all(plain.tracks[k].status == CONFIRMED for k in two)
+    with pytest.raises(ValueError, match="min_support"):
+        TrackerConfig(min_support=1.5)
