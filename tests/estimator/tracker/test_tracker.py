@@ -96,7 +96,8 @@ def test_reset_all_one_class_one_object(robi_catalog, runs):
 
 def test_tracks_unseen_while_in_view_are_dropped(robi_catalog, runs):
     seq = runs[2][0]
-    est = MultiViewEstimator(robi_catalog, TrackerConfig(max_misses=2))
+    # the misses alone (the support rule off): see the next test for it
+    est = MultiViewEstimator(robi_catalog, TrackerConfig(max_misses=2, min_support=0.0))
     for view in seq.views[:3]:
         est.update(view.frame, view.detections)
     confirmed = {k for k, t in est.tracks.items() if t.status == CONFIRMED}
@@ -191,7 +192,7 @@ def test_a_track_the_views_stop_supporting_falls_back_to_tentative(robi_catalog,
     assert all(k not in est.tracks or est.tracks[k].status != CONFIRMED for k in two)
     assert set(est.last_report.dropped) | {k for k in two if k not in est.tracks}
     # without the rule the same tracks stay confirmed
-    plain = MultiViewEstimator(robi_catalog, TrackerConfig(max_misses=20))
+    plain = MultiViewEstimator(robi_catalog, TrackerConfig(max_misses=20, min_support=0.0))
     for view in seq.views[:2]:
         plain.update(view.frame, view.detections)
     for view in seq.views[2:5]:
