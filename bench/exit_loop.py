@@ -101,6 +101,17 @@ def run_serve(state_dir: Path) -> tuple[int, str]:
     return code, out
 
 
+def _repeat(what: str, n: int, run, codes: collections.Counter) -> None:
+    """``run()`` n times, each exit code counted; a failed run's last output lines printed."""
+    for k in range(n):
+        t0 = time.monotonic()
+        code, out = run()
+        codes[code] += 1
+        print(f"{what} {k + 1}/{n}: exit {code} in {time.monotonic() - t0:.0f} s", flush=True)
+        if code:
+            print("\n".join(out.splitlines()[-15:]), flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--demo", type=int, default=50, help="demo runs")
@@ -116,27 +127,9 @@ def main(argv: list[str] | None = None) -> int:
         "serve": collections.Counter(),
     }
     try:
-        for k in range(args.demo):
-            t0 = time.monotonic()
-            code, out = run_demo()
-            codes["demo"][code] += 1
-            print(
-                f"demo {k + 1}/{args.demo}: exit {code} in {time.monotonic() - t0:.0f} s",
-                flush=True,
-            )
-            if code:
-                print("\n".join(out.splitlines()[-15:]), flush=True)
+        _repeat("demo", args.demo, run_demo, codes["demo"])
         with tempfile.TemporaryDirectory() as state:
-            for k in range(args.serve):
-                t0 = time.monotonic()
-                code, out = run_serve(Path(state))
-                codes["serve"][code] += 1
-                print(
-                    f"serve {k + 1}/{args.serve}: exit {code} in {time.monotonic() - t0:.0f} s",
-                    flush=True,
-                )
-                if code:
-                    print("\n".join(out.splitlines()[-15:]), flush=True)
+            _repeat("serve", args.serve, lambda: run_serve(Path(state)), codes["serve"])
     finally:
         stop.set()
         for p in spinners:
