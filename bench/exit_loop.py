@@ -18,19 +18,14 @@ import argparse
 import collections
 import json
 import multiprocessing
-import signal
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from posefuse.bench.service_latency import _free_port, _get
-
-
-def _spin(stop) -> None:
-    while not stop.is_set():
-        sum(range(10_000))
+from posefuse.bench.hostile import Served, spin
+from posefuse.bench.service_latency import peer_config
 
 
 def run_demo() -> tuple[int, str]:
@@ -46,31 +41,17 @@ def run_serve(state_dir: Path) -> tuple[int, str]:
     """One serve: start, a few frames, SIGTERM; (exit code, or -1000 for no snapshot; output)."""
     import zenoh
 
-    from posefuse.bench.service_latency import peer_config
     from posefuse.service.recording import read_messages
     from posefuse.service.resources import DEFAULT_RECORDING
     from posefuse.service.settings import put_camera_message
 
-    zport, hport = _free_port(), _free_port()
-    log = tempfile.TemporaryFile("w+")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "posefuse.cli", "serve", "--cell", "posefuse"]
-        + ["--listen", f"tcp/127.0.0.1:{zport}", "--http-port", str(hport)]
-        + ["--state-dir", str(state_dir)],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    base = f"http://127.0.0.1:{hport}"
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None:
-        try:
-            if _get(f"{base}/readyz")["status"] == "ready":
-                break
-        except OSError:
-            time.sleep(0.3)
-    sent = 0
-    if proc.poll() is None:
-        with zenoh.open(peer_config(zport)) as session:
+    try:
+        daemon = Served("--state-dir", str(state_dir), cell="posefuse")
+    except RuntimeError as exc:
+        return -1001, str(exc)
+    try:
+        sent = 0
+        with zenoh.open(peer_config(daemon.zport)) as session:
             time.sleep(0.5)
             for m in read_messages(DEFAULT_RECORDING):
                 if "/cam/" not in m.key:
@@ -80,21 +61,14 @@ def run_serve(state_dir: Path) -> tuple[int, str]:
                 if sent >= 4:
                     break
             t0 = time.monotonic()
-            while time.monotonic() - t0 < 60:
-                if _get(f"{base}/stats")["frames_handled"] >= sent:
-                    break
+            while time.monotonic() - t0 < 60 and daemon.stats()["frames_handled"] < sent:
                 time.sleep(0.2)
-        proc.send_signal(signal.SIGTERM)
+        daemon.stop()  # SIGTERM, with the frames in flight
+        code, out = daemon.proc.returncode, daemon.output()
+    finally:
+        daemon.close()
     try:
-        code = proc.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        code = proc.wait()
-    log.seek(0)
-    out = log.read()
-    snapshot = state_dir / "estimator.state"
-    try:
-        with open(snapshot, "rb") as f:
+        with open(state_dir / "estimator.state", "rb") as f:
             json.loads(f.readline())
     except (OSError, ValueError):
         return (code or -1000), out
@@ -119,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--busy", type=int, default=1, help="processes spinning beside")
     args = parser.parse_args(argv)
     stop = multiprocessing.Event()
-    spinners = [multiprocessing.Process(target=_spin, args=(stop,)) for _ in range(args.busy)]
+    spinners = [multiprocessing.Process(target=spin, args=(stop,)) for _ in range(args.busy)]
     for p in spinners:
         p.start()
     codes: dict[str, collections.Counter] = {

@@ -54,13 +54,13 @@ SECOND = 1_000_000_000
 class Served:
     """``posefuse serve`` in its own process, its output in a file; ready when built."""
 
-    def __init__(self):
+    def __init__(self, *args: str, cell: str = CELL):
         self.zport, hport = _free_port(), _free_port()
         self.base = f"http://127.0.0.1:{hport}"
         self.log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "posefuse.cli", "serve", "--cell", CELL]
-            + ["--listen", f"tcp/127.0.0.1:{self.zport}", "--http-port", str(hport)],
+            [sys.executable, "-m", "posefuse.cli", "serve", "--cell", cell]
+            + ["--listen", f"tcp/127.0.0.1:{self.zport}", "--http-port", str(hport), *args],
             stdout=self.log,
             stderr=subprocess.STDOUT,
             env={**os.environ, "PYTHONUNBUFFERED": "1"},
@@ -163,7 +163,8 @@ def _scene_frames(spec: str) -> list:
     return out
 
 
-def _spin(stop) -> None:
+def spin(stop) -> None:
+    """A busy process: spins until ``stop`` (a multiprocessing Event) is set."""
     while not stop.is_set():
         sum(range(10_000))
 
@@ -172,7 +173,7 @@ def _spin(stop) -> None:
 def row_overload(args, report) -> None:
     frames = _scene_frames(args.scene)
     stop = multiprocessing.Event()
-    busy = [multiprocessing.Process(target=_spin, args=(stop,)) for _ in range(args.busy)]
+    busy = [multiprocessing.Process(target=spin, args=(stop,)) for _ in range(args.busy)]
     daemon = Served()
     try:
         import zenoh

@@ -21,10 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-def _spin(stop) -> None:
-    while not stop.is_set():
-        sum(range(10_000))
+from posefuse.bench.hostile import spin
 
 
 def step_times(catalog: str, init: str | None, threads: int | None, steps: int, data: str):
@@ -75,9 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         for busy in (0, args.busy):
             for threads in (2, 1, None):
                 stop = multiprocessing.Event()
-                spinners = [
-                    multiprocessing.Process(target=_spin, args=(stop,)) for _ in range(busy)
-                ]
+                spinners = [multiprocessing.Process(target=spin, args=(stop,)) for _ in range(busy)]
                 for p in spinners:
                     p.start()
                 try:
