@@ -140,11 +140,11 @@ def _replay_live(args: argparse.Namespace, settings) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     # lazy: the estimator and the replay modules load trimesh, scipy, cv2 and mcap (~0.9 s)
     from posefuse.estimator.core.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+    from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.foxglove import FoxgloveMirror
     from posefuse.service.recording import Recorder, RecordingError, read_messages
     from posefuse.service.replay import replay_offline, write_estimates_json
-    from posefuse.service.worker import EstimatorWorker, make_detector
+    from posefuse.service.worker import EstimatorWorker, make_detector, tracker_config
 
     settings = _settings(args)
     if args.live:
@@ -153,7 +153,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         raise PosefuseError("say --offline (feed the estimator here) or --live (over Zenoh)")
     catalog = load_catalog(settings.catalog)
     # the daemon's settings, verification included, so offline and live replays agree
-    estimator = MultiViewEstimator(catalog, TrackerConfig.with_verification(settings.verify))
+    estimator = MultiViewEstimator(catalog, tracker_config(settings))
     worker = EstimatorWorker(estimator, make_detector(settings, catalog))
     messages = []
     damage = None

@@ -39,12 +39,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from posefuse.estimator.core.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+    from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.api import create_cells_app
     from posefuse.service.cells import CellSet
     from posefuse.service.daemon import Daemon
     from posefuse.service.state import StateStore, catalog_fingerprint
-    from posefuse.service.worker import EstimatorWorker, make_detector
+    from posefuse.service.worker import EstimatorWorker, make_detector, tracker_config
 
     limit_malloc_arenas()
     settings = claim_http_port(_settings(args))
@@ -54,9 +54,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     warm.warm_up()  # templates and size ratios before the first frame, not during it
 
     def make_daemon(cell_settings) -> Daemon:
-        estimator = MultiViewEstimator(
-            catalog, TrackerConfig.with_verification(settings.verify), banks=warm.banks()
-        )
+        estimator = MultiViewEstimator(catalog, tracker_config(settings), banks=warm.banks())
         estimator.warm_up()
         store = None
         if cell_settings.state_dir is not None:

@@ -38,6 +38,7 @@ EXAMPLE_ESTIMATE = {
     "hypotheses": [{"q": [0.0, 0.0, 0.3826834, 0.9238795], "weight": 0.9, "n": 5}],
     "n_views": 6,
     "status": "confirmed",
+    "verified": True,
 }
 
 
@@ -57,6 +58,11 @@ class ObjectEstimateModel(BaseModel):
     hypotheses: list[dict]
     n_views: int
     status: str
+    verified: bool = Field(
+        False,
+        description="the pose is the one the object's views agree on (verified across them and "
+        "refined); false while that check waits for the newest views, and without verification",
+    )
 
     model_config = {"json_schema_extra": {"examples": [EXAMPLE_ESTIMATE]}}
 

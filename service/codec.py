@@ -467,6 +467,7 @@ def estimate_to_dict(e) -> dict:
         ],
         "n_views": int(e.n_views),
         "status": e.status,
+        "verified": bool(e.verified),
     }
 
 

@@ -169,13 +169,16 @@ class Daemon:
         return self.counters.frames_handled()
 
     def stats_dict(self) -> dict:
-        return self.counters.stats_dict(
-            self.settings.cell,
-            self.active,
-            self._fused.qsize(),
-            self.restored,
-            self.objects_needing_views(),
-        )
+        return {
+            **self.counters.stats_dict(
+                self.settings.cell,
+                self.active,
+                self._fused.qsize(),
+                self.restored,
+                self.objects_needing_views(),
+            ),
+            "verification": self.worker.verification_stats(),
+        }
 
     # ------------------------------------------------------------------ threads
     def _wake_front_end(self) -> None:
@@ -214,12 +217,17 @@ class Daemon:
         return self._front is None or not self._front.is_alive()
 
     def _work(self, session) -> None:
-        """Stage 2: the estimator's update, then publish. At stop, the frames the front end
-        still hands over are fused before the thread ends (then the snapshot is written)."""
+        """Stage 2: the estimator's update, then publish; while no frame waits, the deferred
+        verification of one waiting track at a time, its verified estimate published. At stop,
+        the frames the front end still hands over are fused before the thread ends (then the
+        snapshot is written, with the tracks still waiting for their check)."""
         while not (self._stop.is_set() and self._front_end_done() and self._fused.empty()):
+            checking = self.worker.checks_waiting() and not self._stop.is_set()
             try:
-                frame, detections = self._fused.get(timeout=0.2)
+                frame, detections = self._fused.get(timeout=0.0 if checking else 0.2)
             except queue.Empty:
+                if checking:
+                    self._check_one(session)
                 continue
             try:
                 updated = self.worker.fuse(frame, detections)
@@ -228,6 +236,18 @@ class Daemon:
                 continue
             self.counters.processed(frame, now_ns())
             self.publisher.publish(session, frame.stamp_ns, updated)
+
+    def _check_one(self, session) -> None:
+        """One waiting track verified and refined, and its estimate published (a slice of the
+        deferred verification: a frame that arrives meanwhile waits for this track only)."""
+        try:
+            checked = self.worker.check_next(now_ns())
+        except Exception:
+            self.counters.events["verification_errors"] += 1
+            log.exception("the verification of a track failed")
+            return
+        if checked is not None:
+            self.publisher.publish(session, checked.stamp_ns, [checked])
 
     def _snapshot_loop(self) -> None:
         while not self._stop.wait(self.settings.state_interval_s):

@@ -87,16 +87,16 @@ def run_demo(
     from tqdm import tqdm
 
     from posefuse.estimator.core.objects import load_catalog
-    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+    from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.api import begin_closing, create_app
     from posefuse.service.codec import decode_reset, estimate_to_dict
     from posefuse.service.daemon import Daemon
     from posefuse.service.recording import read_messages
     from posefuse.service.settings import put_camera_message, wait_for_subscribers, zenoh_config
-    from posefuse.service.worker import EstimatorWorker, make_detector
+    from posefuse.service.worker import EstimatorWorker, make_detector, tracker_config
 
     catalog = load_catalog(settings.catalog)
-    estimator = MultiViewEstimator(catalog, TrackerConfig.with_verification(settings.verify))
+    estimator = MultiViewEstimator(catalog, tracker_config(settings))
     start = time.perf_counter()
     built = []
     estimator.prepare_templates(progress=lambda name, seconds, cached: built.append(not cached))
@@ -137,12 +137,19 @@ def run_demo(
     def handled() -> int:
         return daemon.frames_handled()
 
+    def verified() -> None:
+        """Wait (30 s at most) for the verification of the tracks the frames changed, as a
+        daemon given time does it between frames."""
+        deadline = time.monotonic() + 30
+        while daemon.worker.checks_waiting() and time.monotonic() < deadline:
+            time.sleep(0.005)
+
     client_conf = zenoh_config(
         settings.model_copy(update={"listen": [], "mode": "peer", "connect": settings.listen})
     )
     print(
         f"[3/3] replaying {n_images} frames of {Path(recording).name} through Zenoh, each "
-        "processed before the next",
+        "processed and verified before the next",
         flush=True,
     )
     with zenoh.open(client_conf) as session:
@@ -156,6 +163,7 @@ def run_demo(
         for m in messages:
             if m.key == keys.reset:
                 if scene is not None:
+                    verified()
                     segments.append(
                         (scene, [estimate_to_dict(e) for e in daemon.worker.snapshot()])
                     )
@@ -188,10 +196,12 @@ def run_demo(
                 else:
                     stuck_since = None
                 time.sleep(0.002)
+            verified()  # and verified before the next: the offline replay's estimates
         deadline = time.monotonic() + 30
         while daemon.sync.pending() and time.monotonic() < deadline:
             time.sleep(0.01)
         time.sleep(0.2)
+        verified()
         bar.close()
         segments.append((scene, [estimate_to_dict(e) for e in daemon.worker.snapshot()]))
     rows_all, n_parts = [], 0

@@ -77,11 +77,10 @@ class Settings(BaseSettings):
     ingest_small: int = 1024  # infos, and poses, waiting per camera (the oldest dropped)
     ingest_bytes: int = 256 * 1024 * 1024  # payloads waiting, all cameras together
     image_queue: int = 2  # frames buffered per camera: the latest win when behind
-    # verification of rotation hypotheses across views (docs/verification.md): more accurate,
-    # but about 30 ms more per frame on average with 10 objects on 2 cores, and one camera at
-    # 10 Hz keeps up only just, depending on the machine (docs/verification.md), so off in the
-    # daemon unless asked for
-    verify: bool = False
+    # verification of rotation hypotheses across views, and refinement (docs/verification.md):
+    # deferred, so that no frame waits for it (service/worker.py): a track's pose is published
+    # at once from its mixture, then verified when no frame waits (POSEFUSE_VERIFY=0: off)
+    verify: bool = True
     max_queued_bytes: int = 512 * 1024 * 1024  # decoded frames waiting, all cameras
     max_cameras: int = 16  # at the limit, a camera that never completed a frame yields
     camera_timeout_s: float = 60.0  # silent this long, a camera is forgotten when a slot is needed

@@ -5,14 +5,23 @@ offline replay, and the state the HTTP API and the queryables read.
 called from one thread, in stamp order. ``snapshot`` is an immutable copy of the current
 estimates, made on the first read after a change, that readers on other threads take without
 blocking the worker for long.
+
+The service's estimator defers its verification (:func:`tracker_config`): :meth:`fuse`
+publishes the mixture's pose at once, and the tracks whose views changed wait for
+:meth:`check_next`, which the daemon calls one track at a time while no frame waits; offline
+replay checks every waiting track after each frame (:meth:`process`), as a daemon that is never
+behind would.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 
-from posefuse.estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate
+import numpy as np
+
+from posefuse.estimator.tracker import Frame, MultiViewEstimator, ObjectEstimate, TrackerConfig
 from posefuse.service.stats import Stats
 from posefuse.service.sync import SyncedFrame
 
@@ -33,10 +42,20 @@ class EstimatorWorker:
         # them after every frame cost 5-10 ms of a frame's latency with 20 objects in view)
         self._snapshot: dict[str, ObjectEstimate] | None = {}
         self.stats = Stats()
+        # the deferred verification: per waiting track, the arrival (wall clock, ns) of the
+        # first frame it waits for; tracks checked; and image -> verified pose latencies
+        self._waiting_since: dict[str, int] = {}
+        self.checked = 0
+        self.check_latencies_ms: deque = deque(maxlen=1000)
 
     def process(self, frame: SyncedFrame) -> list[ObjectEstimate]:
-        """Front end and estimator of one frame (:meth:`detections` then :meth:`fuse`)."""
-        return self.fuse(frame, self.detections(frame))
+        """Front end and estimator of one frame (:meth:`detections` then :meth:`fuse`), then
+        every waiting verification (:meth:`check_next`): the estimates published by a daemon
+        that is never behind, the fast ones first."""
+        updated = self.fuse(frame, self.detections(frame))
+        while (checked := self.check_next()) is not None:
+            updated.append(checked)
+        return updated
 
     def detections(self, frame: SyncedFrame) -> list:
         """The front end of one frame; touches no state, so it may run while the previous
@@ -53,8 +72,46 @@ class EstimatorWorker:
                 detections,
             )
             self._snapshot = None
-            self.stats.processed += 1
+            for object_id in self.estimator.checks_due():
+                self._waiting_since.setdefault(object_id, frame.arrival_ns)
+            self.stats.processed += 1  # last: a reader that sees it sees the tracks waiting
         return updated
+
+    def checks_waiting(self) -> int:
+        """How many tracks wait for their verification (cheap; no lock needed to read)."""
+        return len(self._waiting_since)
+
+    def check_next(self, now_ns: int = 0) -> ObjectEstimate | None:
+        """Verify the track that has waited longest (:meth:`MultiViewEstimator.check_next`);
+        its estimate, or None when none waits. ``now_ns``: the wall clock its latency is
+        measured against (0: not measured)."""
+        with self._lock:
+            due = self.estimator.checks_due()
+            for gone in set(self._waiting_since) - set(due):  # dropped, merged or reset
+                del self._waiting_since[gone]
+            if not due:
+                return None
+            checked = self.estimator.check_next(due[0])
+            self._snapshot = None
+            since = self._waiting_since.pop(due[0], 0)
+            self.checked += 1
+        if now_ns and since:
+            self.check_latencies_ms.append((now_ns - since) / 1e6)
+        return checked
+
+    def verification_stats(self) -> dict:
+        """The deferred verification in ``/stats``: on or off, tracks waiting, tracks checked,
+        and the latency from an image to the verified pose of the tracks it changed."""
+        latency: dict[str, float | None] = {"p50_ms": None, "p95_ms": None}
+        if self.check_latencies_ms:
+            a = np.array(self.check_latencies_ms)
+            latency = {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95))}
+        return {
+            "enabled": self.estimator.config.verification.enabled,
+            "waiting": self.checks_waiting(),
+            "checked": self.checked,
+            "latency": latency,
+        }
 
     def _current(self) -> dict[str, ObjectEstimate]:
         """The estimates by object id; call with the lock held."""
@@ -105,6 +162,7 @@ class EstimatorWorker:
         with self._lock:
             self.estimator.import_state(state)
             self._snapshot = None
+            self._waiting_since = dict.fromkeys(self.estimator.checks_due(), 0)
 
     def reset(self, class_id: int | None = None, object_id: str | None = None) -> int:
         """Forget tracks; KeyError for an unknown object, ValueError for an unknown class."""
@@ -113,7 +171,15 @@ class EstimatorWorker:
                 raise ValueError(f"unknown class_id {class_id}")
             n = self.estimator.reset(class_id=class_id, object_id=object_id)
             self._snapshot = None
+            due = set(self.estimator.checks_due())
+            self._waiting_since = {k: v for k, v in self._waiting_since.items() if k in due}
             return n
+
+
+def tracker_config(settings) -> TrackerConfig:
+    """The service's estimator settings: verification as ``settings.verify`` says, deferred
+    (the frame path never waits for it; see the module docstring)."""
+    return TrackerConfig.with_verification(settings.verify, deferred=True)
 
 
 def make_detector(settings, catalog):

@@ -51,6 +51,10 @@ class TrackerConfig:
     max_pending_views: int = 8
     # a track keeps this many views for its translation; older ones are folded into its prior
     max_track_views: int = 30
+    # verification and refinement in the update (False), or later, track by track, when
+    # asked (MultiViewEstimator.check_next): the daemon runs them between frames, so a frame
+    # never waits for them; checked after every update, the estimates are the same
+    deferred_verification: bool = False
 
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
@@ -62,6 +66,7 @@ class TrackerConfig:
             )
 
     @classmethod
-    def with_verification(cls, enabled: bool) -> TrackerConfig:
-        """The defaults, with the verification across views on or off."""
-        return cls(verification=VerificationConfig(enabled=enabled))
+    def with_verification(cls, enabled: bool, deferred: bool = False) -> TrackerConfig:
+        """The defaults, with the verification across views on or off, in the update or
+        deferred (``deferred_verification``)."""
+        return cls(verification=VerificationConfig(enabled=enabled), deferred_verification=deferred)

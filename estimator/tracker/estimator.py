@@ -198,7 +198,7 @@ class MultiViewEstimator:
                     track.pending.append(pending)
                     del track.pending[: -self.config.max_pending_views]
             for oid in touched:
-                self.poses.measure_rotations(self.tracks[oid])
+                self.poses.measure_rotations(self.tracks[oid], view.view_serial)
 
         dropped = [a for a, _ in merged] + self.book.drop_missed()
         self.last_report = UpdateReport(
@@ -212,6 +212,28 @@ class MultiViewEstimator:
         )
         self.last_stamp_ns = view.stamp_ns
         return [self._estimate(self.tracks[k], view.stamp_ns) for k in touched if k in self.tracks]
+
+    def checks_due(self) -> list[str]:
+        """With ``deferred_verification``: the tracks waiting for their verification, the
+        longest waiting first (then in object id order)."""
+        waiting = [(t.check_since, k) for k, t in self.tracks.items() if t.check_since is not None]
+        return [k for _, k in sorted(waiting)]
+
+    def check_next(self, object_id: str | None = None) -> ObjectEstimate | None:
+        """Verify (and refine) the track that has waited longest, or ``object_id``; its
+        estimate afterwards, or None when no track waits (or ``object_id`` does not)."""
+        due = self.checks_due()
+        if object_id is None:
+            object_id = due[0] if due else None
+        if object_id not in due:
+            return None
+        track = self.tracks[object_id]
+        self.poses.check_due(track)
+        return self._estimate(track, self.last_stamp_ns or 0)
+
+    def check_all(self) -> list[ObjectEstimate]:
+        """Every waiting track's verification, the longest waiting first; their estimates."""
+        return [e for k in self.checks_due() if (e := self.check_next(k)) is not None]
 
     def estimates(self, include_tentative: bool = True) -> list[ObjectEstimate]:
         """All current tracks, in object_id order."""

@@ -143,9 +143,11 @@ class PoseStage:
         depth_std = np.sqrt(ray_world @ track.estimate.cov @ ray_world)
         return depth_std / p[2] <= self.config.rotation_max_depth_rel_std
 
-    def measure_rotations(self, track: Track) -> None:
+    def measure_rotations(self, track: Track, serial: int = 0) -> None:
         """Measure the rotation in the track's waiting views, once its translation allows; keep
-        the edge maps of new viewpoints, and verify when they add to what the track shows."""
+        the edge maps of new viewpoints, and verify when they add to what the track shows: now,
+        or, with ``deferred_verification``, when :meth:`check_due` is called (the track waits
+        from view ``serial``)."""
         if not track.pending or not self.translation_known(track, track.pending[-1].T_cam_world):
             return
         if track.mixture is None:
@@ -184,16 +186,40 @@ class PoseStage:
                 del track.edge_views[: -vcfg.max_views]
                 added.append(stamp)
         track.pending.clear()
-        # verified again when a view adds to what the kept views show, unless the track is
-        # settled and the view agrees with it, or when the mixture no longer has the
-        # components the last verdict weighed
+        if not self.config.deferred_verification:
+            self.check(track, added)
+        elif added or (self.stale(track) and track.edge_views):
+            # the check waits for :meth:`check_due`; a track already waiting keeps its place
+            if track.check_since is None:
+                track.check_since = serial
+            track.check_added = track.check_added | frozenset(added)
+
+    @staticmethod
+    def stale(track: Track) -> bool:
+        """Whether the mixture no longer has the components the last verdict weighed."""
         verdict = track.verdict
-        stale = verdict is None or len(verdict.weights) != len(track.mixture.components)
+        return verdict is None or len(verdict.weights) != len(track.mixture.components)
+
+    def check(self, track: Track, added: list[int]) -> None:
+        """Verify the track again when views (stamps ``added``) add to what the kept views
+        show, unless it is settled and they agree with it, or when the mixture no longer has
+        the components the last verdict weighed."""
+        if track.mixture is None:
+            return
+        stale = self.stale(track)
         if added and not stale and self.settled(track):
             track.settled_stamps = track.settled_stamps | set(added)
             return
         if (stale and track.edge_views) or added:
             self.verify(track, new_views=bool(added))
+
+    def check_due(self, track: Track) -> None:
+        """The check a deferred track waits for (TrackerConfig.deferred_verification), with
+        every view kept since it began to wait; the track then waits no longer."""
+        kept = {v.stamp_ns for v in track.edge_views}
+        added = sorted(s for s in track.check_added if s in kept)
+        track.check_since, track.check_added = None, frozenset()
+        self.check(track, added)
 
     def settled(self, track: Track) -> bool:
         """Whether the track's refined pose still holds, so that verifying and refining again

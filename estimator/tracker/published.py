@@ -4,7 +4,8 @@ confidence, as the service sends them (docs/protocol.md, ``ObjectEstimate``).
 Before any rotation is measured a track publishes its translation with an unknown rotation
 (the identity, with the variance of an angle uniform on [-pi, pi]). With a mixture, the
 mixture's best component leads; after a verification the verified hypothesis leads, and with an
-accepted refinement its full pose and covariance are published.
+accepted refinement its full pose and covariance are published (``verified``, unless a deferred
+verification waits for views fused since).
 """
 
 from __future__ import annotations
@@ -48,6 +49,10 @@ class ObjectEstimate:
     n_views: int
     status: str
     frame_id: str = "world"
+    # the pose is the one the track's kept views agree on (verified across them, and refined
+    # when the refinement was accepted), for the views fused so far; False while a deferred
+    # verification waits, and always without verification
+    verified: bool = False
 
     @property
     def t_world_obj(self) -> np.ndarray:
@@ -64,6 +69,7 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
     confidence = 0.0
     hypotheses: tuple[RotationHypothesis, ...] = ()
     best = track.mixture.best() if track.mixture is not None else None
+    verified = False
     if best is not None:
         T[:3, :3] = best.R_world_obj
         cov[3:, 3:] = best.cov
@@ -79,6 +85,7 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
             R_components[lead] = verdict.R_world_obj[verdict.best]
             T[:3, :3] = R_components[lead]
             cov[3:, 3:] = best.cov
+            verified = track.check_since is None
             refined = track.refined
             if refined is not None and refined.accepted:
                 T[:3, :3] = R_components[lead] = refined.R_world_obj
@@ -102,4 +109,5 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
         hypotheses=hypotheses,
         n_views=track.views_seen,
         status=track.status,
+        verified=verified,
     )

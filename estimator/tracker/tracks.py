@@ -98,6 +98,10 @@ class Track:
     # pose has been checked against (the settled check)
     refined_t_prior: np.ndarray | None = None
     settled_stamps: frozenset = frozenset()
+    # with deferred verification: the view serial since which the track waits for its check
+    # (None: it does not wait), and the stamps of the views kept meanwhile
+    check_since: int | None = None
+    check_added: frozenset = frozenset()
 
     def view(self) -> TrackView:
         e = self.estimate
@@ -313,6 +317,9 @@ class TrackBook:
         views = sorted(keep.edge_views + gone.edge_views, key=lambda v: v.stamp_ns)
         keep.edge_views = views[-self.config.verification.max_views :]
         keep.verdict, keep.refined = None, None  # the mixture changes: verified again next view
+        waiting = [s for s in (keep.check_since, gone.check_since) if s is not None]
+        keep.check_since = min(waiting) if waiting else None
+        keep.check_added = keep.check_added | gone.check_added
         keep.scores = ScoreCache()
         if gone.mixture is not None:
             if keep.mixture is None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from posefuse.estimator.core.objects import load_catalog
-from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+from posefuse.estimator.tracker import MultiViewEstimator
 from posefuse.evaluation.eval_points import eval_points
 from posefuse.evaluation.pose_error import eval_symmetries
 from posefuse.service.foxglove import FoxgloveMirror
@@ -16,7 +16,7 @@ from posefuse.service.recording import Recorder, read_messages
 from posefuse.service.replay import replay_offline, write_estimates_json
 from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL, DEFAULT_RECORDING
 from posefuse.service.settings import Settings
-from posefuse.service.worker import EstimatorWorker, make_detector
+from posefuse.service.worker import EstimatorWorker, make_detector, tracker_config
 
 EXPECTED = Path(DEFAULT_RECORDING).with_suffix(".expected.json")
 # the shipped front end the expected file was made with (sha256 of models/robi_like.onnx, its
@@ -143,7 +143,7 @@ def test_random_rotations_fall_below_the_floor():
 def _replay(default_banks, mcap_out=None):
     catalog = load_catalog(DEFAULT_CATALOG)
     settings = Settings(model=DEFAULT_MODEL, catalog=DEFAULT_CATALOG)
-    config = TrackerConfig.with_verification(settings.verify)  # as the daemon has it
+    config = tracker_config(settings)  # as the daemon has it
     worker = EstimatorWorker(
         MultiViewEstimator(catalog, config, banks=default_banks), make_detector(settings, catalog)
     )
