@@ -50,8 +50,13 @@ def test_kill_9_and_restart_restores_the_tracks(full_res_dataset, tmp_path):
             time.sleep(0.5)
             info_server = InfoServer(session)  # answers info requests, as a camera does
             _put_all(session, messages, info_server, daemon)
+            # every frame fused, and every track verified (the deferred step), so that the
+            # estimates read now are those of the snapshots that follow
             wait_until(
-                lambda: daemon.stats()["frames_processed"] == n_images, 120, context=daemon.stats
+                lambda: (s := daemon.stats())["frames_processed"] == n_images
+                and s["verification"]["waiting"] == 0,
+                120,
+                context=daemon.stats,
             )
             before = {o["object_id"]: o for o in daemon.objects()}
             confirmed = {k for k, o in before.items() if o["status"] == "confirmed"}

@@ -1,0 +1,98 @@
+"""The worker's deferred verification: fused frames leave tracks waiting, checked one at a time
+(the daemon's slices between frames) or all after each frame (offline replay); counted and
+timed for ``/stats``; a reset forgets the waiting tracks it removed."""
+
+from __future__ import annotations
+
+import pytest
+
+from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.evaluation.dataset import load_dataset
+from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
+from posefuse.service.settings import Settings
+from posefuse.service.sync import SyncedFrame
+from posefuse.service.worker import EstimatorWorker, tracker_config
+
+
+@pytest.fixture(scope="module")
+def scene_frames(small_dataset_root):
+    """The first scene's frames and an oracle front end that knows them by stamp."""
+    dataset = load_dataset(small_dataset_root)
+    front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
+    scene = dataset.scene(dataset.scene_ids[0])
+    views = {}
+    frames = []
+    for k, im in enumerate(scene.im_ids, 1):
+        view = scene.view(im)
+        stamp = k * 100_000_000
+        views[stamp] = view
+        frames.append(
+            SyncedFrame("cam0", stamp, scene.load_rgb(im), view.camera, view.T_world_cam, stamp)
+        )
+    return dataset, frames, lambda image, stamp_ns: front.detect(views[stamp_ns])
+
+
+def _worker(dataset, detect, default_banks, **settings):
+    config = tracker_config(Settings(**settings))
+    return EstimatorWorker(MultiViewEstimator(dataset.catalog, config, banks=default_banks), detect)
+
+
+def test_the_daemon_is_verified_by_default_and_can_be_told_not_to(monkeypatch):
+    assert Settings().verify
+    config = tracker_config(Settings())
+    assert config.verification.enabled and config.deferred_verification
+    monkeypatch.setenv("POSEFUSE_VERIFY", "0")
+    assert not tracker_config(Settings()).verification.enabled
+
+
+def test_fused_frames_leave_tracks_waiting_and_slices_check_them_oldest_first(
+    scene_frames, default_banks
+):
+    dataset, frames, detect = scene_frames
+    worker = _worker(dataset, detect, default_banks)
+    for frame in frames:
+        fast = worker.fuse(frame, worker.detections(frame))
+        waiting = set(worker.estimator.checks_due())
+        assert all(not e.verified for e in fast if e.object_id in waiting)
+    due = worker.estimator.checks_due()
+    assert worker.checks_waiting() == len(due) >= 2
+    assert worker.verification_stats()["waiting"] == len(due)
+    first = worker.check_next(now_ns=frames[-1].arrival_ns + 50_000_000)
+    assert first.object_id == due[0] and first.verified
+    # timed from the arrival of the first frame the track waited for
+    assert worker.check_latencies_ms[-1] >= 50.0
+    # readers see the checked estimate
+    assert worker.get(first.object_id).verified
+    while worker.check_next() is not None:
+        pass
+    stats = worker.verification_stats()
+    assert stats["waiting"] == 0 and stats["checked"] == len(due) and stats["enabled"]
+    assert stats["latency"]["p50_ms"] is not None
+
+
+def test_offline_processing_publishes_the_fast_estimate_then_the_verified_one(
+    scene_frames, default_banks
+):
+    dataset, frames, detect = scene_frames
+    worker = _worker(dataset, detect, default_banks)
+    verified_after_fast = 0
+    for frame in frames:
+        published = worker.process(frame)
+        assert worker.checks_waiting() == 0
+        seen_fast = set()
+        for e in published:
+            if not e.verified:
+                seen_fast.add(e.object_id)
+            elif e.object_id in seen_fast:
+                verified_after_fast += 1
+    assert verified_after_fast > 0
+
+
+def test_a_reset_forgets_the_waiting_tracks_it_removed(scene_frames, default_banks):
+    dataset, frames, detect = scene_frames
+    worker = _worker(dataset, detect, default_banks)
+    for frame in frames[:4]:
+        worker.fuse(frame, worker.detections(frame))
+    assert worker.checks_waiting() > 0
+    worker.reset()
+    assert worker.checks_waiting() == 0 and worker.check_next() is None
