@@ -53,8 +53,10 @@ def test_kill_9_and_restart_restores_the_tracks(full_res_dataset, tmp_path):
             # every frame fused, and every track verified (the deferred step), so that the
             # estimates read now are those of the snapshots that follow
             wait_until(
-                lambda: (s := daemon.stats())["frames_processed"] == n_images
-                and s["verification"]["waiting"] == 0,
+                lambda: (
+                    (s := daemon.stats())["frames_processed"] == n_images
+                    and s["verification"]["waiting"] == 0
+                ),
                 120,
                 context=daemon.stats,
             )
