@@ -111,6 +111,7 @@ def live(dataset, scene_ids, stamps: dict[tuple[int, int], int], rate: float) ->
 
     results: dict[int, list] = {n: [] for n in CHECKPOINTS}
     drain: dict[int, list[float]] = {n: [] for n in CHECKPOINTS}
+    dropped = dict.fromkeys(CHECKPOINTS, 0)
     daemon, zport, base = start_daemon(CELL)
     try:
         with zenoh.open(peer_config(zport)) as session:
@@ -119,7 +120,8 @@ def live(dataset, scene_ids, stamps: dict[tuple[int, int], int], rate: float) ->
                 for n in CHECKPOINTS:
                     frames = list(_frames(dataset, scene_id, stamps[(scene_id, n)]))
                     _reset(base)
-                    handled0 = _get(f"{base}/stats")["frames_handled"]
+                    before = _get(f"{base}/stats")
+                    handled0 = before["frames_handled"]
                     start = time.perf_counter()
                     for k, (stamp, view, image) in enumerate(frames[:n]):
                         delay = start + k / rate - time.perf_counter()
@@ -139,14 +141,18 @@ def live(dataset, scene_ids, stamps: dict[tuple[int, int], int], rate: float) ->
                     drain[n].append(time.perf_counter() - sent_at)
                     if stats["frames_handled"] - handled0 < n:
                         raise RuntimeError(f"scene {scene_id}: the daemon handled too few frames")
-                    if stats["frames_processed"] < stats["frames_handled"]:
-                        print(f"scene {scene_id}: frames dropped {stats['frames_dropped']}")
+                    processed = stats["frames_processed"] - before["frames_processed"]
+                    dropped[n] += n - processed
+                    if processed < n:
+                        print(f"scene {scene_id}, {n} views: {n - processed} frames dropped")
                     estimates = _get(f"{base}/objects")
                     results[n] += _pose_results(estimates, frames[n - 1][1], scene_id)
                 print(f"scene {scene_id}: done", flush=True)
     finally:
         daemon.terminate()
         daemon.wait(timeout=30)
+    for n in CHECKPOINTS:
+        print(f"{n} views: {dropped[n]} of {n * len(scene_ids)} frames dropped live")
     return results, drain
 
 

@@ -49,6 +49,9 @@ from posefuse.service.worker import EstimatorWorker, now_ns
 
 log = logging.getLogger("posefuse.daemon")
 
+# the checks owed while frames wait, at most (a burst of frames owes no more than this)
+MAX_CHECK_CREDIT_S = 0.2
+
 
 class Daemon:
     def __init__(self, settings: Settings, worker: EstimatorWorker, state_store=None):
@@ -217,18 +220,28 @@ class Daemon:
         return self._front is None or not self._front.is_alive()
 
     def _work(self, session) -> None:
-        """Stage 2: the estimator's update, then publish; while no frame waits, the deferred
-        verification of one waiting track at a time, its verified estimate published. At stop,
-        the frames the front end still hands over are fused before the thread ends (then the
+        """Stage 2: the estimator's update, then publish; between frames, the deferred
+        verification of one waiting track at a time, its verified estimate published: always
+        while no frame waits, and while frames wait, up to ``verify_share`` of the worker's
+        time (so that under load the checks fall behind, but are never starved). At stop, the
+        frames the front end still hands over are fused before the thread ends (then the
         snapshot is written, with the tracks still waiting for their check)."""
+        share = self.settings.verify_share
+        credit = 0.0  # seconds of checks owed while frames wait
         while not (self._stop.is_set() and self._front_end_done() and self._fused.empty()):
             checking = self.worker.checks_waiting() and not self._stop.is_set()
+            if checking and credit > 0 and not self._fused.empty():
+                start = time.perf_counter()
+                self._check_one(session)
+                credit -= time.perf_counter() - start
+                continue
             try:
                 frame, detections = self._fused.get(timeout=0.0 if checking else 0.2)
             except queue.Empty:
                 if checking:
                     self._check_one(session)
                 continue
+            start = time.perf_counter()
             try:
                 updated = self.worker.fuse(frame, detections)
             except Exception:
@@ -236,6 +249,9 @@ class Daemon:
                 continue
             self.counters.processed(frame, now_ns())
             self.publisher.publish(session, frame.stamp_ns, updated)
+            if share > 0:
+                owed = (time.perf_counter() - start) * share / (1.0 - share)
+                credit = min(credit + owed, MAX_CHECK_CREDIT_S)
 
     def _check_one(self, session) -> None:
         """One waiting track verified and refined, and its estimate published (a slice of the
