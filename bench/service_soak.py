@@ -14,8 +14,9 @@ progressive JPEG whose one AC scan is repeated 20,000 times (4096x4096, every he
 a PNG of 200,000 tiny chunks; at the same time a junk camera id that was never seen before
 sends one 8x8 frame and nothing else. Printed at the end: the daemon's RSS min / max (sampled
 every second), frames sent, processed, dropped by reason, whether every message sent is
-accounted for (processed or dropped with a reason), and the p50 / p95 latency (arrival to
-estimate) of the frames processed.
+accounted for (processed or dropped with a reason), the p50 / p95 latency (arrival to
+estimate) of the frames processed, and the deferred verification's backlog (parts waiting,
+sampled every second), checks done and image -> verified pose latency.
 """
 
 from __future__ import annotations
@@ -188,11 +189,13 @@ def main(argv: list[str] | None = None) -> int:
                 (png_many_chunks(), "png", (64, 64)),
             ]
             rss: list[float] = []
+            waiting: list[int] = []  # parts waiting for the deferred verification
             stop = threading.Event()
 
             def sample():
                 while not stop.wait(1.0):
                     rss.append(_rss_mb(daemon.pid))
+                    waiting.append(_get(f"{base}/stats")["verification"]["waiting"])
 
             sampler = threading.Thread(target=sample, daemon=True)
             sampler.start()
@@ -216,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                     print(
                         f"  {int(now - start):4d} s: sent {k}, processed "
                         f"{s['frames_processed'] - before['frames_processed']}, RSS "
-                        f"{rss[-1] if rss else float('nan'):.0f} MB",
+                        f"{rss[-1] if rss else float('nan'):.0f} MB, parts waiting for their "
+                        f"check {s['verification']['waiting']}",
                         flush=True,
                     )
                     last_report = now
@@ -228,7 +232,11 @@ def main(argv: list[str] | None = None) -> int:
             drain_end = time.monotonic() + 60
             while time.monotonic() < drain_end:
                 s = _get(f"{base}/stats")
-                if not s["frames_pending"] and s["frames_handled"] >= s["frames_received"]:
+                if (
+                    not s["frames_pending"]
+                    and s["frames_handled"] >= s["frames_received"]
+                    and not s["verification"]["waiting"]
+                ):
                     break
                 time.sleep(0.2)
             stop.set()
@@ -267,6 +275,15 @@ def main(argv: list[str] | None = None) -> int:
         "rss_min_mb": round(min(rss), 1),
         "rss_max_mb": round(max(rss), 1),
         "rss_last_mb": round(rss[-1], 1),
+        # the deferred verification: parts waiting (sampled every second), checks done, and
+        # image -> verified pose
+        "verification_waiting_max": max(waiting),
+        "verification_waiting_last": waiting[-1],
+        "verification_waiting_after_drain": after["verification"]["waiting"],
+        "verification_checked": after["verification"]["checked"]
+        - before["verification"]["checked"],
+        "verified_latency_p50_ms": after["verification"]["latency"]["p50_ms"],
+        "verified_latency_p95_ms": after["verification"]["latency"]["p95_ms"],
     }
     print(json.dumps(figures, indent=1))
     if args.json:
