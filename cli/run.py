@@ -74,6 +74,7 @@ def run_and_write(
     rotation: bool = True,
     quiet: bool = False,
     config=None,
+    track_crops: bool = False,
 ) -> DatasetReport:
     """Run the estimator over ``dataset`` (views one at a time, one estimator per scene, the
     template banks built or loaded once) and write its tables into ``out``: translation errors,
@@ -111,6 +112,7 @@ def run_and_write(
         show_progress=not quiet,
         rotation=rotation,
         estimator_factory=factory,
+        track_crops=track_crops,
     )
     write_rows(out / "translation_errors.csv", run.rows)
     summary = summary_markdown(run, dataset.catalog)
@@ -251,6 +253,8 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
 
     if args.frontend not in ("oracle", "network"):
         raise PosefuseError(f"--frontend: {args.frontend!r} is not known; use oracle or network")
+    if args.track_crops and args.frontend != "network":
+        raise PosefuseError("--track-crops: only with --frontend network (stage two looks there)")
     if args.parts is not None:
         from posefuse.sim.onboard import load_part_set  # lazy: loads trimesh and scipy (~0.5 s)
 
@@ -287,6 +291,7 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
         config=tracker_config(
             args.no_verify, args.no_refine, verification_settings(args.verification)
         ),
+        track_crops=args.track_crops,
     )
     print(report.summary)
     print(f"wrote {out / 'translation_errors.csv'} and {out / 'translation_summary.md'}")
@@ -471,6 +476,12 @@ def register(subparsers) -> None:
         "--no-verify",
         action="store_true",
         help="without the multi-view verification and refinement (the ablation)",
+    )
+    p.add_argument(
+        "--track-crops",
+        action="store_true",
+        help="with --frontend network: stage two also where the tracks expect parts that stage "
+        "one missed",
     )
     p.add_argument(
         "--no-refine",

@@ -42,12 +42,32 @@ class LabelledNetworkFrontend:
         self.dataset = dataset
         self.network = network
         self.max_px = max_px
+        self._last = None  # (scene_id, im_id), image
+
+    def _image(self, view):
+        """The view's image, read once for both calls of a view."""
+        key = (view.scene_id, view.im_id)
+        if self._last is None or self._last[0] != key:
+            self._last = (key, self.dataset.scene(view.scene_id).load_rgb(view.im_id))
+        return self._last[1]
 
     def detect_with_truth(self, view):
+        image = self._image(view)
+        dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+        return self._labelled(dets, view)
+
+    def detect_expected_with_truth(self, view, expected):
+        """Stage two where the tracks expect parts the detections miss
+        (:meth:`NetworkFrontend.detect_at`), labelled as :meth:`detect_with_truth`'s."""
+        image = self._image(view)
+        dets = self.network.detect_at(
+            image, expected, stamp_seed=view.scene_id * 100_000 + view.im_id
+        )
+        return self._labelled(dets, view)
+
+    def _labelled(self, dets, view):
         from posefuse.evaluation.frontend_metrics import match_to_truth
 
-        image = self.dataset.scene(view.scene_id).load_rgb(view.im_id)
-        dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
         gts, _, pairs = match_to_truth(dets, view, self.max_px)
         labels = [gts[pairs[i]].gt_idx if i in pairs else -1 for i in range(len(dets))]
         return list(zip(dets, labels, strict=True))
@@ -91,10 +111,13 @@ def run_dataset(
     show_progress: bool = True,
     rotation: bool = False,
     estimator_factory=None,
+    track_crops: bool = False,
 ) -> DatasetRun:
     """Run scene by scene. With ``rotation`` the images are read and the rotation step runs
     too (the front end must give masks); ``estimator_factory`` makes each scene's estimator
-    (default: ``MultiViewEstimator(dataset.catalog, config)``)."""
+    (default: ``MultiViewEstimator(dataset.catalog, config)``). With ``track_crops`` the front
+    end (a :class:`LabelledNetworkFrontend`) also looks where the tracks expect parts that its
+    detections miss (:meth:`MultiViewEstimator.expected_parts`)."""
     rows: list[TranslationRow] = []
     fates: list[InstanceFate] = []
     results: dict[int, list[PoseResult]] = {n: [] for n in checkpoints}
@@ -118,6 +141,11 @@ def run_dataset(
         for count, im_id in enumerate(scene.im_ids, start=1):
             view = scene.view(im_id)
             pairs = frontend.detect_with_truth(view)
+            if track_crops:
+                expected = estimator.expected_parts(
+                    view.camera, view.T_world_cam, [d for d, _ in pairs]
+                )
+                pairs += frontend.detect_expected_with_truth(view, expected)
             n_true += sum(k >= 0 for _, k in pairs)
             image = scene.load_rgb(im_id) if rotation else None
             stamp = count * 100_000_000

@@ -51,3 +51,20 @@ class Detection:
     def bbox_diagonal(self) -> float:
         """Length of the bbox diagonal in pixels."""
         return float(np.hypot(self.bbox_xywh[2], self.bbox_xywh[3]))
+
+
+@dataclass(frozen=True, eq=False)
+class ExpectedPart:
+    """Where a known part should show in an image: a track's translation projected into it.
+
+    Attributes:
+        object_id: the track's.
+        obj_id: BOP object id of its class.
+        center_uv: (2,) pixel coordinates of its projected model origin.
+        side_px: the side, in pixels, of the square box its silhouette is expected to fill.
+    """
+
+    object_id: str
+    obj_id: int
+    center_uv: np.ndarray  # (2,)
+    side_px: float

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from posefuse.estimator.core.errors import PosefuseError
-from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.detection import Detection, ExpectedPart
 from posefuse.estimator.frontend.two_stage import (
     Box,
     CropVote,
@@ -402,6 +402,44 @@ class NetworkFrontend:
         ]
         dets = suppress_duplicates(dets, config.duplicate_factor)
         return sorted(dets, key=lambda d: (d.obj_id, -d.score))
+
+    def detect_at(
+        self,
+        image: np.ndarray,
+        expected: list[ExpectedPart],
+        stamp_seed: int = 0,
+        hint_score: float = 0.3,
+        max_offset: float = 0.25,
+    ) -> list[Detection]:
+        """Stage two on crops where parts are expected (a track's prediction in this view,
+        :meth:`MultiViewEstimator.expected_parts`) although stage one gave no box there: the
+        detections it finds, each voted within ``max_offset`` of the crop's side from where the
+        part was expected (a crop of a neighbour's piece is no detection of the part), scored
+        ``hint_score`` times its pixels' mean probability (``hint_score``: the least a stage-one
+        box scores), its centre's covariance calibrated as the detector's. Empty for a one-stage
+        model. A seed of its own (``stamp_seed``), so that :meth:`detect` is unchanged."""
+        if self.crop_session is None or not expected:
+            return []
+        config = self.two_stage
+        index = {k: i for i, (k, _) in enumerate(self.card.classes)}
+        wanted = [e for e in expected if e.obj_id in index]
+        boxes = [
+            Box(index[e.obj_id], np.asarray(e.center_uv, float), np.full(2, e.side_px), hint_score)
+            for e in wanted
+        ]
+        rng = np.random.default_rng([self.seed, stamp_seed, 1])
+        votes = self.stage_two_votes(image, boxes, rng)
+        dets = []
+        for e, box, vote in zip(wanted, boxes, votes, strict=True):
+            if vote is None:
+                continue
+            side = max(config.box_scale * e.side_px, config.min_crop_side)
+            if np.linalg.norm(vote.center - box.center) > max_offset * side:
+                continue
+            det = detection_of(vote, image.shape[:2], e.obj_id)
+            if det is not None and np.sqrt(np.trace(det.center_cov)) <= self.max_center_std_px:
+                dets.append(det)
+        return self._calibrated(sorted(dets, key=lambda d: (d.obj_id, -d.score)))
 
     def boxes(self, image: np.ndarray) -> list[Box]:
         """Stage one of a two-stage model: the boxes and classes in one image, best first."""

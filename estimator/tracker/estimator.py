@@ -34,7 +34,7 @@ import numpy as np
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog
-from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.detection import Detection, ExpectedPart
 from posefuse.estimator.rotation.matching import RotationMatcher
 from posefuse.estimator.rotation.templates import TemplateBank
 from posefuse.estimator.tracker import snapshot
@@ -243,6 +243,52 @@ class MultiViewEstimator:
             for k in sorted(self.tracks)
             if include_tentative or self.tracks[k].status == CONFIRMED
         ]
+
+    def expected_parts(
+        self,
+        camera: Camera,
+        T_world_cam: np.ndarray,
+        detections: list[Detection] = (),
+        covered_frac: float = 0.5,
+        max_std_frac: float = 0.25,
+    ) -> list[ExpectedPart]:
+        """Where the confirmed tracks should show in a view that the detections do not
+        cover, for a front end to look there too (:meth:`NetworkFrontend.detect_at`).
+
+        A track is expected where its translation projects, inside the image, with the side
+        its box has at that depth (the class's box-size ratio, as for the box depth); not
+        where a detection of its class lies within ``covered_frac`` of that side, nor when its
+        translation's standard deviation (sqrt of the trace of its covariance) projects to more
+        than ``max_std_frac`` of the side (a crop there would not be centred on the part).
+
+        Args:
+            camera: the view's intrinsics; T_world_cam: (4, 4); detections: the view's.
+        """
+        T_cam_world = invert(validate_pose(T_world_cam))
+        f = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
+        out = []
+        for oid in sorted(self.tracks):
+            track = self.tracks[oid]
+            if track.status != CONFIRMED:
+                continue
+            p = T_cam_world[:3, :3] @ track.estimate.t_world_obj + T_cam_world[:3, 3]
+            if p[2] <= MIN_DEPTH:
+                continue
+            uv = camera.project(p)
+            if not camera.contains(uv[None])[0]:
+                continue
+            model = self.catalog[track.obj_id]
+            side = f * self._size_ratio(track.obj_id) * model.diameter / p[2] / np.sqrt(2.0)
+            if f * np.sqrt(np.trace(track.estimate.cov)) / p[2] > max_std_frac * side:
+                continue
+            if any(
+                d.obj_id == track.obj_id
+                and np.linalg.norm(d.center_uv - uv) < covered_frac * side
+                for d in detections
+            ):
+                continue
+            out.append(ExpectedPart(oid, track.obj_id, uv, float(side)))
+        return out
 
     def held(self) -> list[HeldDetection]:
         """The detections waiting for a partner view to found a track, oldest first per class
