@@ -224,3 +224,51 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
     assert set(fates) <= set(FATES)
     assert len(fates) == score.n_instances
     assert fates.count("found") == round(score.recall * score.n_instances)
+
+
+def test_stage_two_where_parts_are_expected_finds_them_and_not_where_none_is(
+    full_res_dataset, robi_catalog
+):
+    """``detect_at`` on a rendered mixed bin: crops centred 3 px off the parts more than 75%
+    visible, with their true box side, give a detection of the class within 5 px of the part
+    for most; crops on empty floor, two sides from any part, give almost none."""
+    from posefuse.estimator.frontend.detection import ExpectedPart
+
+    dataset = load_dataset(full_res_dataset)
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    n_parts = found = n_empty = ghosts = 0
+    rng = np.random.default_rng(0)
+    for view in dataset.views():
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        h, w = image.shape[:2]
+        parts = [
+            (g.obj_id, _projected_origin(view.camera, g.T_cam_obj), max(g.bbox_obj[2:]))
+            for g in view.gts
+            if g.T_cam_obj[2, 3] > 0 and g.visib_fract > 0.75
+        ]
+        expected = [
+            ExpectedPart(f"p{k}", obj_id, uv + rng.normal(0, 3.0 / np.sqrt(2), 2), float(side))
+            for k, (obj_id, uv, side) in enumerate(parts)
+        ]
+        dets = frontend.detect_at(image, expected, stamp_seed=view.im_id)
+        _well_formed(dets, image.shape[:2], robi_catalog)
+        n_parts += len(parts)
+        found += sum(
+            any(d.obj_id == o and np.linalg.norm(d.center_uv - uv) <= 5.0 for d in dets)
+            for o, uv, _ in parts
+        )
+        # empty floor: points two sides (of the largest part) from every part's centre
+        side = max(s for _, _, s in parts) if parts else 100.0
+        every = [_projected_origin(view.camera, g.T_cam_obj) for g in view.gts]
+        empty = []
+        for _ in range(200):
+            uv = rng.uniform([side, side], [w - side, h - side])
+            if all(np.linalg.norm(uv - c) > 2 * side for c in every):
+                empty.append(ExpectedPart("none", parts[0][0] if parts else 1, uv, float(side)))
+            if len(empty) == 5:
+                break
+        n_empty += len(empty)
+        ghosts += len(frontend.detect_at(image, empty, stamp_seed=view.im_id))
+    assert n_parts >= 20 and n_empty >= 5
+    assert found / n_parts >= 0.6, f"{found} of {n_parts} expected parts found within 5 px"
+    assert ghosts <= 0.2 * n_empty, f"{ghosts} detections on {n_empty} crops of empty floor"

@@ -103,3 +103,43 @@ def test_without_deferral_or_verification_nothing_waits(dataset, default_banks):
         assert off.checks_due() == [] and inline.checks_due() == []
     assert not any(e.verified for e in off.estimates())
     assert any(e.verified for e in inline.estimates())
+
+
+def test_the_tracks_expect_parts_where_they_are_unless_a_detection_covers_them(
+    dataset, default_banks
+):
+    """``expected_parts``: after a scene, each confirmed track is expected where its true part
+    projects (within a few pixels), with a side the part's size at its depth allows; a view's
+    own detections cover the tracks they measure; a tentative track is never expected."""
+    from posefuse.estimator.tracker.tracks import CONFIRMED
+
+    estimator = MultiViewEstimator(dataset.catalog, TrackerConfig(), banks=default_banks)
+    frames = list(_frames(dataset, dataset.scene_ids[0]))
+    for frame, detections in frames:
+        estimator.update(frame, detections)
+    frame, detections = frames[-1]
+    scene = dataset.scene(dataset.scene_ids[0])
+    view = scene.view(scene.im_ids[-1])
+    expected = estimator.expected_parts(frame.camera, frame.T_world_cam)
+    confirmed = {k for k, t in estimator.tracks.items() if t.status == CONFIRMED}
+    assert expected and {e.object_id for e in expected} <= confirmed
+    near = 0
+    for e in expected:
+        truth = [
+            (g, frame.camera.project(g.T_cam_obj[:3, 3]))
+            for g in view.gts
+            if g.obj_id == e.obj_id and g.T_cam_obj[2, 3] > 0
+        ]
+        g, uv = min(truth, key=lambda gu: np.linalg.norm(gu[1] - e.center_uv))
+        if np.linalg.norm(uv - e.center_uv) <= 5.0:
+            near += 1
+            # a side between a quarter of the diameter's image and all of it (a box of an
+            # elongated part may be far smaller, seen end-on)
+            f = frame.camera.K[0, 0]
+            diameter_px = f * dataset.catalog[e.obj_id].diameter / g.T_cam_obj[2, 3]
+            assert 0.25 * diameter_px <= e.side_px <= diameter_px
+    assert near >= 0.8 * len(expected)
+    # the view's detections measure most of them: only the others are left
+    left = estimator.expected_parts(frame.camera, frame.T_world_cam, detections)
+    assert len(left) < len(expected)
+    assert {e.object_id for e in left} < {e.object_id for e in expected}
