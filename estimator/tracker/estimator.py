@@ -282,8 +282,7 @@ class MultiViewEstimator:
             if f * np.sqrt(np.trace(track.estimate.cov)) / p[2] > max_std_frac * side:
                 continue
             if any(
-                d.obj_id == track.obj_id
-                and np.linalg.norm(d.center_uv - uv) < covered_frac * side
+                d.obj_id == track.obj_id and np.linalg.norm(d.center_uv - uv) < covered_frac * side
                 for d in detections
             ):
                 continue
