@@ -33,7 +33,7 @@ def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list
 def table(objects: list[dict]) -> str:
     """A plain-text table of ObjectEstimate dicts, units in the headers, with a legend."""
     lines = [
-        f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5}  "
+        f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5} {'verified':>8}  "
         f"{'x (m)':>8} {'y (m)':>8} {'z (m)':>8}  {'roll (deg)':>10} {'pitch (deg)':>11} "
         f"{'yaw (deg)':>9}  {'sigma_t (mm)':>12}"
     ]
@@ -43,13 +43,15 @@ def table(objects: list[dict]) -> str:
         sigma = np.sqrt(np.trace(cov[:3, :3])) * 1000
         t = o["t"]
         lines.append(
-            f"{o['object_id']:<18} {o['status']:<10} {o['n_views']:>5} {o['confidence']:>5.2f}  "
+            f"{o['object_id']:<18} {o['status']:<10} {o['n_views']:>5} {o['confidence']:>5.2f} "
+            f"{'yes' if o.get('verified') else 'no':>8}  "
             f"{t[0]:>8.4f} {t[1]:>8.4f} {t[2]:>8.4f}  {rpy[0]:>10.1f} {rpy[1]:>11.1f} "
             f"{rpy[2]:>9.1f}  {sigma:>12.2f}"
         )
     lines += [
         "x, y, z: the object's origin in the world frame; roll, pitch, yaw: its rotation as",
         "extrinsic x-y-z Euler angles; conf: confidence in [0, 1]; sigma_t: square root of the",
-        "trace of the translation covariance.",
+        "trace of the translation covariance; verified: the pose is the one the object's views",
+        "agree on (checked across them and refined), not only its rotation mixture's best.",
     ]
     return "\n".join(lines)

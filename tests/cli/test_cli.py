@@ -193,9 +193,12 @@ def test_objects_table_names_its_units():
         "q": [0.0, 0.0, 0.0, 1.0],
         "cov": [0.0] * 36,
     }
-    header = table([estimate]).splitlines()[0]
+    header, row = table([estimate]).splitlines()[:2]
     for unit in ("x (m)", "y (m)", "z (m)", "roll (deg)", "pitch (deg)", "yaw (deg)", "(mm)"):
         assert unit in header
+    # a map without the field (an older daemon's) is not verified; one with it says so
+    assert "verified" in header and row.split()[4] == "no"
+    assert table([{**estimate, "verified": True}]).splitlines()[1].split()[4] == "yes"
 
 
 def test_quickstart_runs_the_estimator_and_says_what_next(tmp_path):
