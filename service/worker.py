@@ -72,8 +72,11 @@ class EstimatorWorker:
                 detections,
             )
             self._snapshot = None
-            for object_id in self.estimator.checks_due():
-                self._waiting_since.setdefault(object_id, frame.arrival_ns)
+            # the tracks waiting now (those dropped or merged by this frame leave)
+            old = self._waiting_since
+            self._waiting_since = {
+                k: old.get(k, frame.arrival_ns) for k in self.estimator.checks_due()
+            }
             self.stats.processed += 1  # last: a reader that sees it sees the tracks waiting
         return updated
 
@@ -91,20 +94,24 @@ class EstimatorWorker:
                 del self._waiting_since[gone]
             if not due:
                 return None
-            checked = self.estimator.check_next(due[0])
-            self._snapshot = None
             since = self._waiting_since.pop(due[0], 0)
+            try:
+                checked = self.estimator.check_next(due[0])
+            finally:  # even a check that raised may have changed the track
+                self._snapshot = None
             self.checked += 1
-        if now_ns and since:
-            self.check_latencies_ms.append((now_ns - since) / 1e6)
+            if now_ns and since:
+                self.check_latencies_ms.append((now_ns - since) / 1e6)
         return checked
 
     def verification_stats(self) -> dict:
         """The deferred verification in ``/stats``: on or off, tracks waiting, tracks checked,
         and the latency from an image to the verified pose of the tracks it changed."""
         latency: dict[str, float | None] = {"p50_ms": None, "p95_ms": None}
-        if self.check_latencies_ms:
-            a = np.array(self.check_latencies_ms)
+        with self._lock:
+            latencies = list(self.check_latencies_ms)
+        if latencies:
+            a = np.array(latencies)
             latency = {"p50_ms": float(np.percentile(a, 50)), "p95_ms": float(np.percentile(a, 95))}
         return {
             "enabled": self.estimator.config.verification.enabled,

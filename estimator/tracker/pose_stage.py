@@ -215,11 +215,18 @@ class PoseStage:
 
     def check_due(self, track: Track) -> None:
         """The check a deferred track waits for (TrackerConfig.deferred_verification), with
-        every view kept since it began to wait; the track then waits no longer."""
+        every view kept since it began to wait; the track then waits no longer, even if the
+        check raises (its verdict is then forgotten, so it is not published as verified)."""
         kept = {v.stamp_ns for v in track.edge_views}
         added = sorted(s for s in track.check_added if s in kept)
         track.check_since, track.check_added = None, frozenset()
-        self.check(track, added)
+        try:
+            self.check(track, added)
+        except Exception:
+            # the last verdict no longer speaks for the views: the mixture's pose is published
+            # (unverified) until a new view asks again
+            track.verdict, track.refined = None, None
+            raise
 
     def settled(self, track: Track) -> bool:
         """Whether the track's refined pose still holds, so that verifying and refining again

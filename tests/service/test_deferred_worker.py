@@ -96,3 +96,39 @@ def test_a_reset_forgets_the_waiting_tracks_it_removed(scene_frames, default_ban
     assert worker.checks_waiting() > 0
     worker.reset()
     assert worker.checks_waiting() == 0 and worker.check_next() is None
+
+
+def test_a_check_that_raises_leaves_the_track_unverified_and_waiting_no_more(
+    scene_frames, default_banks, monkeypatch
+):
+    from posefuse.estimator.tracker.pose_stage import PoseStage
+
+    dataset, frames, detect = scene_frames
+    worker = _worker(dataset, detect, default_banks)
+    for frame in frames:
+        worker.process(frame)  # every track verified, none waiting
+    verified = [e.object_id for e in worker.snapshot() if e.verified]  # readers' copy made
+    assert verified and not worker.estimator.checks_due()
+    worker.estimator.tracks[verified[0]].check_since = 0  # it waits again
+
+    def broken(self, track, added):
+        raise RuntimeError("a bug in a check")
+
+    monkeypatch.setattr(PoseStage, "check", broken)
+    with pytest.raises(RuntimeError):
+        worker.check_next()
+    # it waits no more (a check that always fails cannot hold the loop), and readers see it
+    # as its mixture gives it, not as verified
+    assert worker.estimator.checks_due() == []
+    assert not worker.get(verified[0]).verified
+
+
+def test_tracks_that_leave_stop_counting_as_waiting_at_the_next_frame(scene_frames, default_banks):
+    dataset, frames, detect = scene_frames
+    worker = _worker(dataset, detect, default_banks)
+    for frame in frames[:-1]:
+        worker.fuse(frame, worker.detections(frame))
+    assert worker.checks_waiting() > 0
+    worker.estimator.reset()  # behind the worker's back, as a drop or a merge would
+    worker.fuse(frames[-1], worker.detections(frames[-1]))
+    assert worker.checks_waiting() == len(worker.estimator.checks_due())
