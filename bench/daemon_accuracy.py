@@ -21,21 +21,15 @@ from __future__ import annotations
 import argparse
 import json
 import time
-import urllib.request
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from posefuse.bench.service_latency import _get, peer_config, start_daemon
+from posefuse.bench.service_targets import _reset
 
 CELL = "bench"
 CHECKPOINTS = (4, 8)
-
-
-def _reset(base: str) -> None:
-    req = urllib.request.Request(f"{base}/reset", data=b"{}", method="POST")
-    req.add_header("Content-Type", "application/json")
-    urllib.request.urlopen(req, timeout=10).read()
 
 
 def _pose_results(estimates: list[dict], view, scene_id: int):
