@@ -28,7 +28,7 @@ from posefuse.estimator.rotation.templates import (
 from posefuse.estimator.tracker.config import TrackerConfig
 from posefuse.estimator.tracker.tracks import Track
 from posefuse.estimator.translation.gaussian import MIN_DEPTH
-from posefuse.estimator.verification.edge_maps import edge_view
+from posefuse.estimator.verification.edge_maps import EdgeRoi, edge_maps, edge_roi
 from posefuse.estimator.verification.model_edges import ModelEdges, model_edges
 from posefuse.estimator.verification.refinement import (
     EdgeScoring,
@@ -179,9 +179,13 @@ class PoseStage:
                     vcfg.keyframe_distance_frac,
                 )
             ):
-                view = edge_view(
+                # the RoI now, while the image is at hand; its maps now, or with a deferred
+                # check when the check comes (off the frame's path)
+                view = edge_roi(
                     image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp
                 )
+                if not self.config.deferred_verification:
+                    view = edge_maps(view, vcfg.edges)
                 track.edge_views = [v for v in track.edge_views if v.stamp_ns != stamp] + [view]
                 del track.edge_views[: -vcfg.max_views]
                 added.append(stamp)
@@ -216,11 +220,16 @@ class PoseStage:
     def check_due(self, track: Track) -> None:
         """The check a deferred track waits for (TrackerConfig.deferred_verification), with
         every view kept since it began to wait; the track then waits no longer, even if the
-        check raises (its verdict is then forgotten, so it is not published as verified)."""
+        check raises (its verdict is then forgotten, so it is not published as verified). The
+        maps of the views kept since are made first (:func:`edge_maps` of their RoIs)."""
         kept = {v.stamp_ns for v in track.edge_views}
         added = sorted(s for s in track.check_added if s in kept)
         track.check_since, track.check_added = None, frozenset()
         try:
+            ecfg = self.config.verification.edges
+            track.edge_views = [
+                edge_maps(v, ecfg) if isinstance(v, EdgeRoi) else v for v in track.edge_views
+            ]
             self.check(track, added)
         except Exception:
             # the last verdict no longer speaks for the views: the mixture's pose is published

@@ -33,7 +33,7 @@ from posefuse.estimator.translation.gaussian import (
 )
 from posefuse.estimator.translation.merging import MergeCandidate, merge_pairs
 from posefuse.estimator.translation.splitting import outlier_views
-from posefuse.estimator.verification.edge_maps import EdgeView
+from posefuse.estimator.verification.edge_maps import EdgeRoi, EdgeView
 from posefuse.estimator.verification.refinement import Refinement
 from posefuse.estimator.verification.verify import ScoreCache, Verdict
 
@@ -89,8 +89,9 @@ class Track:
     views_seen: int = 1
     pending: list[PendingView] = field(default_factory=list)
     # the most recent views' edge maps (estimator.verification.edge_maps), at most
-    # verification.max_views
-    edge_views: list[EdgeView] = field(default_factory=list)
+    # verification.max_views; with a deferred check, a view's warped RoI until the check makes
+    # its maps
+    edge_views: list[EdgeView | EdgeRoi] = field(default_factory=list)
     verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
     scores: ScoreCache = field(default_factory=ScoreCache)  # per-view costs, reused
     refined: Refinement | None = None

@@ -10,6 +10,10 @@ with its projected direction, reads its cost there (:func:`sample_maps`). The fr
 gives a second map: the distance to the mask's boundary, which the model's occluding contour
 should follow; and points inside it, which a pose's silhouette should cover.
 
+:func:`edge_view` is two steps: :func:`edge_roi` warps the RoI (cheap), :func:`edge_maps` makes
+its maps (the cost). A daemon that verifies between frames keeps the first on the frame's path
+and runs the second when the check comes.
+
 Everything is stored per view in ``uint8`` (tenths of the truncation), ``bins * L * L`` bytes
 plus ``L * L`` for the mask, and the mask's points in ``int16``: 83 kB a view at the defaults.
 """
@@ -23,7 +27,10 @@ import numpy as np
 
 __all__ = [
     "EdgeConfig",
+    "EdgeRoi",
     "EdgeView",
+    "edge_maps",
+    "edge_roi",
     "edge_view",
     "sample_maps",
 ]
@@ -125,7 +132,23 @@ def _to_u8(d: np.ndarray, truncate: float) -> np.ndarray:
     return np.round(np.minimum(d, truncate) * (255.0 / truncate)).astype(np.uint8)
 
 
-def edge_view(
+@dataclass(frozen=True, eq=False)
+class EdgeRoi:
+    """One view's region of interest around a part, warped, before its maps are made: what
+    :func:`edge_maps` needs, kept while a deferred check waits (18 kB a view at the defaults).
+
+    T_cam_world: (4, 4); K_roi: (3, 3); gray: (L, L) uint8; mask: (L, L) uint8 0/1 of the
+    front end's mask, or None; stamp_ns: the view's capture time.
+    """
+
+    T_cam_world: np.ndarray
+    K_roi: np.ndarray
+    gray: np.ndarray
+    mask: np.ndarray | None
+    stamp_ns: int
+
+
+def edge_roi(
     image: np.ndarray,
     K: np.ndarray,
     T_cam_world: np.ndarray,
@@ -134,12 +157,13 @@ def edge_view(
     config: EdgeConfig,
     mask: np.ndarray | None = None,
     stamp_ns: int = 0,
-) -> EdgeView:
-    """The directional chamfer maps of one view's RoI around the part at ``t_cam_obj``.
+) -> EdgeRoi:
+    """The RoI of one view around the part at ``t_cam_obj``, warped to ``roi_size`` pixels
+    (the cheap first half of :func:`edge_view`).
 
     Args:
-        image: (H, W, 3) uint8 RGB. K: (3, 3). T_cam_world: (4, 4). t_cam_obj: (3,) metres,
-        z > 0. mask: (H, W) bool visible mask of the instance, or None.
+        image: (H, W, 3) uint8 RGB or (H, W) gray. K: (3, 3). T_cam_world: (4, 4). t_cam_obj:
+        (3,) metres, z > 0. mask: (H, W) bool visible mask of the instance, or None.
     """
     # OpenCV's warp crashes the process on a map with NaN or inf in it: refuse them here
     if not (np.all(np.isfinite(t_cam_obj)) and np.all(np.isfinite(K)) and np.isfinite(diameter)):
@@ -152,9 +176,27 @@ def edge_view(
     roi = cv2.warpAffine(image, A, (L, L), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     if roi.ndim == 3:
         roi = cv2.cvtColor(roi, cv2.COLOR_RGB2GRAY)
-    edges = cv2.Canny(roi, config.canny_low, config.canny_high, L2gradient=True) > 0
-    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3)
+    m = None
+    if mask is not None:
+        sub, A_sub = _covered(np.asarray(mask), A, L)
+        m = cv2.warpAffine(
+            (sub != 0).astype(np.uint8),
+            A_sub,
+            (L, L),
+            flags=cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+    return EdgeRoi(np.asarray(T_cam_world, float).copy(), K_roi, roi, m, int(stamp_ns))
+
+
+def edge_maps(roi: EdgeRoi, config: EdgeConfig) -> EdgeView:
+    """The directional chamfer maps of a warped RoI (the costly second half of
+    :func:`edge_view`), and those of the mask's boundary."""
+    L = config.roi_size
+    edges = cv2.Canny(roi.gray, config.canny_low, config.canny_high, L2gradient=True) > 0
+    gx = cv2.Sobel(roi.gray, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(roi.gray, cv2.CV_32F, 0, 1, ksize=3)
     tangent = np.mod(np.arctan2(gy, gx) + np.pi / 2, np.pi)  # the edge runs across the gradient
     b = (np.floor(tangent / (np.pi / config.bins) + 0.5).astype(np.uint8) % config.bins).astype(
         np.uint8
@@ -173,16 +215,8 @@ def edge_view(
         for k in reversed(range(config.bins)):
             np.minimum(dt[k], dt[(k + 1) % config.bins] + lam, out=dt[k])
     mask_dt = mask_points = None
-    if mask is not None:
-        sub, A_sub = _covered(np.asarray(mask), A, L)
-        m = cv2.warpAffine(
-            (sub != 0).astype(np.uint8),
-            A_sub,
-            (L, L),
-            flags=cv2.INTER_NEAREST,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=0,
-        )
+    if roi.mask is not None:
+        m = roi.mask
         inner = cv2.erode(m, np.ones((3, 3), np.uint8))
         boundary = m & ~inner.astype(bool)
         src = np.where(boundary.astype(bool), 0, 255).astype(np.uint8)
@@ -191,12 +225,34 @@ def edge_view(
         )
         mask_points = _spread_points(inner, config.coverage_points)
     return EdgeView(
-        np.asarray(T_cam_world, float).copy(),
-        K_roi,
+        roi.T_cam_world,
+        roi.K_roi,
         _to_u8(dt, config.truncate_px),
         mask_dt,
-        int(stamp_ns),
+        roi.stamp_ns,
         mask_points,
+    )
+
+
+def edge_view(
+    image: np.ndarray,
+    K: np.ndarray,
+    T_cam_world: np.ndarray,
+    t_cam_obj: np.ndarray,
+    diameter: float,
+    config: EdgeConfig,
+    mask: np.ndarray | None = None,
+    stamp_ns: int = 0,
+) -> EdgeView:
+    """The directional chamfer maps of one view's RoI around the part at ``t_cam_obj``:
+    :func:`edge_maps` of :func:`edge_roi`.
+
+    Args:
+        image: (H, W, 3) uint8 RGB. K: (3, 3). T_cam_world: (4, 4). t_cam_obj: (3,) metres,
+        z > 0. mask: (H, W) bool visible mask of the instance, or None.
+    """
+    return edge_maps(
+        edge_roi(image, K, T_cam_world, t_cam_obj, diameter, config, mask, stamp_ns), config
     )
 
 

@@ -56,6 +56,39 @@ def test_checked_after_every_update_the_estimates_are_those_of_the_update_bit_fo
     assert checked > 0
 
 
+def test_a_waiting_track_keeps_its_new_views_warped_only_and_the_check_makes_their_maps(
+    dataset, default_banks
+):
+    """The frame's path warps each new view's RoI; the costly maps wait for the check, and are
+    the maps the inline step makes of the same view."""
+    from posefuse.estimator.verification.edge_maps import EdgeRoi, EdgeView
+
+    inline = MultiViewEstimator(dataset.catalog, TrackerConfig(), banks=default_banks)
+    deferred = MultiViewEstimator(
+        dataset.catalog, TrackerConfig(deferred_verification=True), banks=default_banks
+    )
+    rois = 0
+    for frame, detections in _frames(dataset, dataset.scene_ids[0]):
+        inline.update(frame, detections)
+        deferred.update(frame, detections)
+        due = set(deferred.checks_due())
+        for k, track in deferred.tracks.items():
+            waiting = [v for v in track.edge_views if isinstance(v, EdgeRoi)]
+            rois += len(waiting)
+            assert not waiting or k in due  # only a waiting track holds views without maps
+        deferred.check_all()
+        for k, track in deferred.tracks.items():
+            assert all(isinstance(v, EdgeView) for v in track.edge_views)
+            for a, b in zip(track.edge_views, inline.tracks[k].edge_views, strict=True):
+                assert a.stamp_ns == b.stamp_ns
+                assert np.array_equal(a.dcdt, b.dcdt)
+                assert (a.mask_dt is None) == (b.mask_dt is None)
+                if a.mask_dt is not None:
+                    assert np.array_equal(a.mask_dt, b.mask_dt)
+                    assert np.array_equal(a.mask_points, b.mask_points)
+    assert rois > 0
+
+
 def test_tracks_wait_longest_first_and_publish_unverified_until_checked(dataset, default_banks):
     estimator = MultiViewEstimator(
         dataset.catalog, TrackerConfig(deferred_verification=True), banks=default_banks

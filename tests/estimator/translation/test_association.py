@@ -86,6 +86,47 @@ def test_a_track_behind_or_at_the_camera_never_associates():
     assert np.isfinite(innovation_cost(just_in_front, T, K, uv, np.eye(2)))
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_cost_matrix_is_every_pairs_innovation_cost_by_a_linear_solve(seed):
+    # a second implementation, pair by pair: the predicted center, its numeric Jacobian and
+    # np.linalg.solve, against the batch's written-out 2 x 2 inverse
+    rng = np.random.default_rng(100 + seed)
+    T_cam_world = _pose(seed)
+    tracks, centers, covs = [], [], []
+    for _ in range(5):
+        A = rng.normal(0, 0.01, (3, 3))
+        tracks.append(_track(rng.normal(0, 0.05, 3), A @ A.T + 1e-6 * np.eye(3)))
+    for _ in range(7):
+        B = rng.normal(0, 2.0, (2, 2))
+        covs.append(B @ B.T + 0.5 * np.eye(2))
+        centers.append(_project(T_cam_world, K, rng.normal(0, 0.05, 3)))
+    got = cost_matrix(
+        tracks, T_cam_world, K, np.array(centers), np.array(covs), AssociationConfig(1e12)
+    )
+    for i, track in enumerate(tracks):
+        J = np.zeros((2, 3))
+        for a in range(3):
+            d = np.zeros(3)
+            d[a] = 1e-6
+            J[:, a] = (
+                _project(T_cam_world, K, track.t_world_obj + d)
+                - _project(T_cam_world, K, track.t_world_obj - d)
+            ) / 2e-6
+        for j in range(len(centers)):
+            r = _project(T_cam_world, K, track.t_world_obj) - centers[j]
+            expected = r @ np.linalg.solve(J @ track.cov @ J.T + covs[j], r)
+            assert got[i, j] == pytest.approx(expected, rel=1e-6)
+
+
+def test_a_detection_covariance_that_is_not_positive_definite_is_refused():
+    tracks = [_track([0.0, 0.0, 1.0], np.eye(3) * 1e-6)]
+    centers = np.array([[320.0, 240.0], [330.0, 240.0]])
+    for bad in (np.diag([1.0, 0.0]), np.diag([1.0, np.nan]), -np.eye(2)):
+        covs = np.stack([np.eye(2), bad])
+        with pytest.raises(ValueError, match="center measurement"):
+            cost_matrix(tracks, np.eye(4), K, centers, covs, AssociationConfig())
+
+
 def test_cost_matrix_gates_at_gate_chi2_inclusive():
     T = np.eye(4)
     tracks = [_track([0.0, 0.0, 1.0], np.zeros((3, 3))), _track([0.1, 0.0, 1.0], np.zeros((3, 3)))]

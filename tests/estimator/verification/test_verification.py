@@ -364,9 +364,9 @@ def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
     verdicts = {k: t.verdict for k, t in estimator.tracks.items()}
     assert sum(v is not None for v in verdicts.values()) > 0
     calls = []
-    real_edge_view = tracker_module.edge_view
+    real_edge_roi = tracker_module.edge_roi
     monkeypatch.setattr(
-        tracker_module, "edge_view", lambda *a, **k: calls.append(1) or real_edge_view(*a, **k)
+        tracker_module, "edge_roi", lambda *a, **k: calls.append(1) or real_edge_roi(*a, **k)
     )
     front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
     view = scene.view(last)
