@@ -139,6 +139,30 @@ def closest_equivalent(
     return R[0], float(angle[0])
 
 
+def angles_to_means(
+    R_meas: np.ndarray,
+    R_means: np.ndarray,
+    discrete: np.ndarray,
+    continuous_axes: np.ndarray,
+) -> np.ndarray:
+    """The angle from each of C means to the symmetric equivalent of one rotation closest to
+    it: :func:`closest_equivalent`'s angle, every component's in one batch.
+
+    Args:
+        R_meas: (3, 3). R_means: (C, 3, 3). discrete: (D, 3, 3) with the identity.
+        continuous_axes: (A, 3) unit, A = 0 or 1.
+    Returns:
+        (C,) radians.
+    """
+    candidates = np.einsum("ij,djk->dik", R_meas, discrete)  # (D, 3, 3)
+    relative = np.einsum("cji,djk->cdik", R_means, candidates)  # (C, D, 3, 3) R_mean^T cand
+    if len(continuous_axes):
+        a = continuous_axes[0]
+        theta = _axis_angle_optimum(relative, a)  # (C, D)
+        relative = relative @ so3_exp(theta[..., None] * a)
+    return rotation_angle(relative).min(axis=1)
+
+
 class RotationMixture:
     """The max-mixture of one object (see the module docstring)."""
 
@@ -169,10 +193,15 @@ class RotationMixture:
             raise ValueError(f"rotation measurement: confidence must be > 0, got {confidence}")
         R = np.asarray(R_world_obj, dtype=np.float64)
         best, best_angle = -1, np.inf
-        for i, comp in enumerate(self.components):
-            _, angle = closest_equivalent(R, comp.R_world_obj, self.discrete, self.continuous_axes)
-            if angle < best_angle:
-                best, best_angle = i, angle
+        if self.components:
+            angles = angles_to_means(
+                R,
+                np.array([comp.R_world_obj for comp in self.components]),
+                self.discrete,
+                self.continuous_axes,
+            )
+            best = int(np.argmin(angles))  # the first of equals
+            best_angle = float(angles[best])
         if best < 0 or best_angle > np.deg2rad(self.config.gate_deg):
             self.components.append(RotationComponent(R.copy(), [(R.copy(), float(confidence))]))
             best = len(self.components) - 1
