@@ -68,6 +68,9 @@ class Settings(BaseSettings):
     catalog: Path = Path(DEFAULT_CATALOG)
     model: Path = Path(DEFAULT_MODEL)
     onnx_threads: int = 2
+    # the network's threads spin for more work after a run (onnxruntime's default) or sleep:
+    # beside the estimator on 2 cores, sleeping gives it the time (docs/performance.md)
+    onnx_spin: bool = False
     # input handling (service/sync.py explains each)
     max_payload_bytes: int = 16 * 1024 * 1024
     max_image_pixels: int = 4096 * 4096  # checked on the declared and the header size

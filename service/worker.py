@@ -193,7 +193,9 @@ def make_detector(settings, catalog):
     """The front end of the settings: the ONNX network of ``settings.model``."""
     from posefuse.estimator.frontend.network import NetworkFrontend
 
-    network = NetworkFrontend(settings.model, catalog, threads=settings.onnx_threads)
+    network = NetworkFrontend(
+        settings.model, catalog, threads=settings.onnx_threads, spin=settings.onnx_spin
+    )
     return lambda image, stamp_ns: network.detect(image, stamp_seed=stamp_ns)
 
 

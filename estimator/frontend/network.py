@@ -234,6 +234,7 @@ class NetworkFrontend:
         voting: VotingConfig | None = None,
         seed: int = 0,
         max_center_std_px: float = 15.0,
+        spin: bool = True,
     ):
         import onnxruntime as ort
 
@@ -250,6 +251,10 @@ class NetworkFrontend:
         options = ort.SessionOptions()
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
+        if not spin:
+            # the pool's threads sleep as soon as a run ends instead of spinning for more work:
+            # beside the estimator's threads on few cores, a spinning pool takes their time
+            options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if deterministic:
             options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
             options.add_session_config_entry("session.use_deterministic_compute", "1")
