@@ -148,7 +148,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
     from posefuse.service.resources import DEFAULT_MODEL
 
     ds = load_dataset(dataset_dir)
-    network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads)
+    network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads, spin=False)
     decode = decoders()["image"]
     estimator = MultiViewEstimator(ds.catalog, config)
     estimator.warm_up()  # as posefuse serve does before its first frame

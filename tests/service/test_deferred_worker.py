@@ -132,3 +132,21 @@ def test_tracks_that_leave_stop_counting_as_waiting_at_the_next_frame(scene_fram
     worker.estimator.reset()  # behind the worker's back, as a drop or a merge would
     worker.fuse(frames[-1], worker.detections(frames[-1]))
     assert worker.checks_waiting() == len(worker.estimator.checks_due())
+
+
+def test_the_daemons_network_threads_sleep_after_a_run_unless_told_to_spin(monkeypatch):
+    from posefuse.service.worker import make_detector
+
+    assert not Settings().onnx_spin
+    monkeypatch.setenv("POSEFUSE_ONNX_SPIN", "1")
+    assert Settings().onnx_spin
+    monkeypatch.delenv("POSEFUSE_ONNX_SPIN")
+    seen = {}
+
+    class Recorder:
+        def __init__(self, model, catalog, threads, spin):
+            seen.update(threads=threads, spin=spin)
+
+    monkeypatch.setattr("posefuse.estimator.frontend.network.NetworkFrontend", Recorder)
+    make_detector(Settings(onnx_threads=1), catalog=None)
+    assert seen == {"threads": 1, "spin": False}

@@ -132,6 +132,26 @@ def test_shipped_model_finds_the_visible_parts_where_they_are(full_res_dataset, 
     assert near / n_dets >= 0.6, f"{near} of {n_dets} detections within 5 px of a part"
 
 
+def test_sleeping_threads_find_what_spinning_ones_find(full_res_dataset, robi_catalog):
+    """``spin=False`` (the daemon's setting) tells onnxruntime's pools to sleep after a run;
+    the detections are the same, to the bit."""
+    dataset = load_dataset(full_res_dataset)
+    view = next(iter(dataset.views()))
+    image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+    spinning = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    sleeping = NetworkFrontend(DEFAULT_MODEL, robi_catalog, spin=False)
+    key = "session.intra_op.allow_spinning"
+    for session in (sleeping.session, sleeping.crop_session):
+        assert session.get_session_options().get_session_config_entry(key) == "0"
+    a = spinning.detect(image, stamp_seed=view.im_id)
+    b = sleeping.detect(image, stamp_seed=view.im_id)
+    assert len(a) == len(b) > 0
+    for x, y in zip(a, b, strict=True):
+        assert x.obj_id == y.obj_id and x.score == y.score
+        assert np.array_equal(x.center_uv, y.center_uv)
+        assert np.array_equal(x.center_cov, y.center_cov)
+
+
 def test_bad_input_gives_one_clear_error(robi_catalog, tmp_path):
     """The shipped model (no torch needed): wrong images, a missing, foreign or damaged model."""
     model = Path(DEFAULT_MODEL)
