@@ -82,7 +82,9 @@ class OracleFrontend:
             elif cfg.with_masks:
                 mask = scene.load_mask_visib(view.im_id, gt.gt_idx)
             sizes.append(bbox[2:])
-            out.append((Detection(gt.obj_id, bbox, uv + noise, cov, mask, 1.0), gt.gt_idx))
+            kind = "box" if cfg.masks == "box" else "silhouette"
+            det = Detection(gt.obj_id, bbox, uv + noise, cov, mask, 1.0, kind)
+            out.append((det, gt.gt_idx))
         n_false = rng.binomial(len(out), cfg.false_positive_rate) if out else 0
         for _ in range(n_false):
             # the size of a random true detection, at most half the image, so the box fits
@@ -95,5 +97,8 @@ class OracleFrontend:
                 x0, y0 = int(bbox[0]), int(bbox[1])
                 mask[y0 : y0 + int(wh[1]), x0 : x0 + int(wh[0])] = True
             obj_id = self._obj_ids[rng.integers(len(self._obj_ids))]
-            out.append((Detection(obj_id, bbox, uv, cov, mask, 0.5), -1))
+            # a false detection's mask is its box; in the silhouette mode it poses as a
+            # silhouette, as it always has (the figures measured with it stay comparable)
+            kind = "box" if cfg.masks == "box" else "silhouette"
+            out.append((Detection(obj_id, bbox, uv, cov, mask, 0.5, kind), -1))
         return out

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+MASK_KINDS = ("silhouette", "box")  # what a Detection's mask outlines
+
 
 @dataclass(frozen=True, eq=False)
 class Detection:
@@ -20,6 +22,11 @@ class Detection:
             definite.
         mask: (H, W) bool visible mask of the instance, or None when the front end has none.
         score: confidence of the detection in [0, 1].
+        mask_kind: ``"silhouette"`` when ``mask`` follows the part's visible outline (the
+            learned front end's, the ground truth's), ``"box"`` when it only fills the box
+            around it. Both bound the rotation step's RoI; only a silhouette's outline is
+            compared with the model's by the verification across views, since a box's edges
+            are not the part's.
     """
 
     obj_id: int
@@ -28,8 +35,13 @@ class Detection:
     center_cov: np.ndarray  # (2, 2)
     mask: np.ndarray | None  # (H, W) bool
     score: float = 1.0
+    mask_kind: str = "silhouette"
 
     def __post_init__(self) -> None:
+        if self.mask_kind not in MASK_KINDS:
+            raise ValueError(
+                f"Detection: mask_kind must be one of {MASK_KINDS}, got {self.mask_kind!r}"
+            )
         bbox = np.asarray(self.bbox_xywh, dtype=np.float64).reshape(4)
         uv = np.asarray(self.center_uv, dtype=np.float64).reshape(2)
         cov = np.asarray(self.center_cov, dtype=np.float64).reshape(2, 2)
@@ -46,6 +58,11 @@ class Detection:
         object.__setattr__(self, "bbox_xywh", bbox)
         object.__setattr__(self, "center_uv", uv)
         object.__setattr__(self, "center_cov", cov)
+
+    @property
+    def silhouette(self) -> np.ndarray | None:
+        """The mask when it is the part's outline (``mask_kind == "silhouette"``), else None."""
+        return self.mask if self.mask_kind == "silhouette" else None
 
     @property
     def bbox_diagonal(self) -> float:

@@ -192,8 +192,13 @@ class MultiViewEstimator:
             for j, oid in changes.assigned:
                 if oid in self.tracks:
                     track = self.tracks[oid]
+                    det = detections[j]
                     pending = PendingView(
-                        view.stamp_ns, view.T_cam_world, view.K, detections[j].mask
+                        view.stamp_ns,
+                        view.T_cam_world,
+                        view.K,
+                        det.mask,
+                        det.mask_kind == "silhouette",
                     )
                     track.pending.append(pending)
                     del track.pending[: -self.config.max_pending_views]
@@ -435,6 +440,7 @@ class MultiViewEstimator:
                     float("nan") if truncated else view.box_depths[j],
                     j,
                     det.mask,
+                    det.mask_kind == "silhouette",
                 )
             )
         pool = self.book.held.get(obj_id, [])

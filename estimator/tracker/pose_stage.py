@@ -159,7 +159,7 @@ class PoseStage:
         vcfg = self.config.verification
         model = self.catalog[track.obj_id]
         added: list[int] = []  # stamps of the views kept
-        for stamp, T_cam_world, K, mask in track.pending:
+        for stamp, T_cam_world, K, mask, silhouette in track.pending:
             image = self.images.get(stamp)
             if image is None:
                 continue
@@ -180,9 +180,11 @@ class PoseStage:
                 )
             ):
                 # the RoI now, while the image is at hand; its maps now, or with a deferred
-                # check when the check comes (off the frame's path)
+                # check when the check comes (off the frame's path). A box is not the part's
+                # outline: its edges would pull the model's contour onto them
+                outline = mask if silhouette else None
                 view = edge_roi(
-                    image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, mask, stamp
+                    image, K, T_cam_world, t_cam, model.diameter, vcfg.edges, outline, stamp
                 )
                 if not self.config.deferred_verification:
                     view = edge_maps(view, vcfg.edges)

@@ -59,12 +59,14 @@ class ViewRef(NamedTuple):
 
 class PendingView(NamedTuple):
     """A view waiting for a translation good enough to measure its rotation: its stamp,
-    T_cam_world (4, 4), K (3, 3) and the detection's mask ((H, W) bool, or None)."""
+    T_cam_world (4, 4), K (3, 3), the detection's mask ((H, W) bool, or None) and whether that
+    mask follows the part's outline (the verification reads only such a mask)."""
 
     stamp_ns: int
     T_cam_world: np.ndarray
     K: np.ndarray
     mask: np.ndarray | None
+    silhouette: bool = True
 
 
 @dataclass(eq=False)
@@ -164,7 +166,7 @@ class TrackBook:
         ]
         track = self.new_track(a.obj_id, obs, pair.prior_mean, pair.prior_cov, refs)
         for h in (a, b):
-            track.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask))
+            track.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask, h.silhouette))
         return track
 
     def absorb_held(self, pool: list[HeldDetection], tracks: list[Track]) -> list[HeldDetection]:
@@ -186,7 +188,7 @@ class TrackBook:
             self.add_view(
                 best, h.T_cam_world, h.K, h.uv, h.cov, ViewRef(h.stamp_ns, h.index, h.box_depth)
             )
-            best.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask))
+            best.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask, h.silhouette))
         return left
 
     def add_view(

@@ -65,7 +65,9 @@ class HeldDetection:
     T_cam_world: (4, 4); K: (3, 3); uv: (2,) undistorted pixels; cov: (2, 2) px^2;
     box_depth: metres, the depth the box suggests (NaN when the box is truncated by the image
     border); index: the detection's index in its view;
-    mask: (H, W) bool or None (for the rotation step once a track is founded).
+    mask: (H, W) bool or None (for the rotation step once a track is founded); silhouette:
+    whether the mask follows the part's outline (a filled box does not: see
+    :class:`~estimator.frontend.detection.Detection`'s ``mask_kind``).
     """
 
     obj_id: int
@@ -78,6 +80,7 @@ class HeldDetection:
     box_depth: float
     index: int
     mask: np.ndarray | None = None
+    silhouette: bool = True  # a state saved before the field existed reads this default
 
 
 @dataclass(frozen=True, eq=False)

@@ -60,5 +60,6 @@ def test_box_masks_are_the_filled_visible_boxes(small_dataset_root):
         x, y, w, h = view.gts[k].bbox_visib
         assert b.mask.sum() == w * h and b.mask[y : y + h, x : x + w].all()
         assert (b.mask | ~s.mask).all()  # the silhouette lies inside its box
+        assert (s.mask_kind, b.mask_kind) == ("silhouette", "box")
     with np.testing.assert_raises_regex(ValueError, "masks must be 'silhouette' or 'box'"):
         OracleConfig(masks="boxes")

@@ -89,6 +89,27 @@ def test_a_waiting_track_keeps_its_new_views_warped_only_and_the_check_makes_the
     assert rois > 0
 
 
+def test_a_box_mask_bounds_the_rotation_step_but_its_edges_are_never_the_outline(
+    dataset, default_banks
+):
+    """With box masks the kept views have no mask maps: the verification reads the image's
+    edges alone, not the box's sides as if they were the part's outline."""
+    from dataclasses import replace
+
+    from posefuse.estimator.verification.edge_maps import EdgeView
+
+    kept = {}
+    for kind in ("silhouette", "box"):
+        estimator = MultiViewEstimator(dataset.catalog, TrackerConfig(), banks=default_banks)
+        for frame, detections in _frames(dataset, dataset.scene_ids[0]):
+            estimator.update(frame, [replace(d, mask_kind=kind) for d in detections])
+        views = [v for t in estimator.tracks.values() for v in t.edge_views]
+        assert views and all(isinstance(v, EdgeView) for v in views)
+        kept[kind] = views
+    assert all(v.mask_dt is not None and v.mask_points is not None for v in kept["silhouette"])
+    assert all(v.mask_dt is None and v.mask_points is None for v in kept["box"])
+
+
 def test_tracks_wait_longest_first_and_publish_unverified_until_checked(dataset, default_banks):
     estimator = MultiViewEstimator(
         dataset.catalog, TrackerConfig(deferred_verification=True), banks=default_banks
