@@ -38,6 +38,13 @@ DETECTION_LEGEND = (
     "(found instances per estimate), and the lenient ADI < 0.1 d."
 )
 
+AMBIGUITY_LEGEND = (
+    "The published poses of confirmed tracks whose instance shows more than 75%: those "
+    "published unambiguous and the share right (ADD-sym < 0.1 d), those published ambiguous "
+    "(a near-symmetric turn the views cannot rule out, published beside the pose), the share "
+    "right, and the share whose truth is the pose or one of its published turns."
+)
+
 
 @dataclass
 class DatasetReport:
@@ -82,6 +89,7 @@ def run_and_write(
     every scored instance."""
     # lazy: the estimator and its scoring load scipy, trimesh and cv2 (~0.6 s)
     from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.evaluation.ambiguity import ambiguity_markdown, write_ambiguity
     from posefuse.evaluation.fates import fate_table
     from posefuse.evaluation.run_dataset import (
         CHECKPOINTS,
@@ -143,6 +151,11 @@ def run_and_write(
         f"applies); profile {dataset.profile}, front end {frontend_name}."
     )
     (out / "fates.md").write_text(f"{report.fates_legend}\n\n{report.fates}\n")
+    rows = [r for n in CHECKPOINTS for r in run.ambiguity.get(n, [])]
+    write_ambiguity(out / "ambiguity.csv", rows)
+    (out / "ambiguity.md").write_text(
+        f"{AMBIGUITY_LEGEND}\n\n{ambiguity_markdown(rows, dataset.catalog)}\n"
+    )
     return report
 
 

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.evaluation.ambiguity import AmbiguityRow, ambiguity_rows
 from posefuse.evaluation.fates import InstanceFate, TrackPose, instance_fates
 from posefuse.evaluation.oracle import OracleFrontend
 from posefuse.evaluation.scores import PoseResult
@@ -100,6 +101,8 @@ class DatasetRun:
     # per checkpoint, the NEES (translation, rotation) of each published pose of a confirmed
     # track against its instance (visib_fract > 0.75), with the rotation step
     pose_nees: dict[int, list[tuple[float, float]]] = field(default_factory=dict)
+    # per checkpoint, of the same poses: how each was published and how it fared
+    ambiguity: dict[int, list[AmbiguityRow]] = field(default_factory=dict)
 
 
 def run_dataset(
@@ -122,6 +125,7 @@ def run_dataset(
     fates: list[InstanceFate] = []
     results: dict[int, list[PoseResult]] = {n: [] for n in checkpoints}
     covariance: dict[int, list[tuple[float, float]]] = {n: [] for n in checkpoints}
+    ambiguity: dict[int, list[AmbiguityRow]] = {n: [] for n in checkpoints}
     targets: dict[int, list[tuple[int, int]]] = {n: [] for n in checkpoints}
     members_all: dict[str, list[int]] = {}
     confirmed_all: set[str] = set()
@@ -173,6 +177,9 @@ def run_dataset(
             identity = track_identities(members)
             if rotation:
                 covariance[count] += _published_nees(estimates, view, identity, dataset.catalog)
+                ambiguity[count] += ambiguity_rows(
+                    _scored(estimates, view, identity), dataset.catalog, count
+                )
             cam_centre = view.T_world_cam[:3, 3]
             for oid, track in sorted(estimator.tracks.items()):
                 gt_idx = identity.get(oid, -1)
@@ -201,23 +208,29 @@ def run_dataset(
         }
     bar.close()
     score = association_score(members_all, confirmed_all, n_true)
-    return DatasetRun(tuple(rows), score, results, targets, tuple(fates), covariance)
+    return DatasetRun(tuple(rows), score, results, targets, tuple(fates), covariance, ambiguity)
+
+
+def _scored(estimates, view, identity, min_visib: float = 0.75):
+    """(estimate, T_world_true) of the published poses of confirmed tracks whose instance
+    (of their class) shows more than ``min_visib`` in ``view``."""
+    gts = {gt.gt_idx: gt for gt in view.gts if gt.visib_fract > min_visib}
+    for e in estimates:
+        gt = gts.get(identity.get(e.object_id, -1))
+        if gt is None or not e.hypotheses or e.status != CONFIRMED or gt.obj_id != e.class_id:
+            continue
+        yield e, view.T_world_cam @ gt.T_cam_obj
 
 
 def _published_nees(estimates, view, identity, catalog, min_visib: float = 0.75):
     """(translation, rotation) NEES of each published pose of a confirmed track, among
     ``estimates`` (ObjectEstimate), whose instance shows more than ``min_visib`` in ``view``
     (:func:`evaluation.tracking.pose_nees`)."""
-    gts = {gt.gt_idx: gt for gt in view.gts if gt.visib_fract > min_visib}
     out = []
-    for e in estimates:
-        gt = gts.get(identity.get(e.object_id, -1))
-        if gt is None or not e.hypotheses or e.status != CONFIRMED or gt.obj_id != e.class_id:
-            continue
+    for e, T_true in _scored(estimates, view, identity, min_visib):
         model = catalog[e.class_id]
         discrete = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
         axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
-        T_true = view.T_world_cam @ gt.T_cam_obj
         out.append(pose_nees(e.T_world_obj, e.cov, T_true, discrete, axes))
     return out
 

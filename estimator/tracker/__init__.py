@@ -23,6 +23,7 @@ from posefuse.estimator.tracker.estimator import (
 from posefuse.estimator.tracker.pose_stage import PoseStage
 from posefuse.estimator.tracker.published import (
     ROTATION_UNKNOWN_VAR,
+    AlternativeTurn,
     ObjectEstimate,
     RotationHypothesis,
     published_estimate,
@@ -44,6 +45,7 @@ __all__ = [
     "DetectionRef",
     "Frame",
     "MultiViewEstimator",
+    "AlternativeTurn",
     "ObjectEstimate",
     "PendingView",
     "PoseStage",

@@ -461,7 +461,9 @@ class MultiViewEstimator:
         self.book.keep_held(obj_id, pool)
 
     def _estimate(self, track: Track, stamp: int) -> ObjectEstimate:
-        return published_estimate(track, stamp, self.catalog[track.obj_id].name)
+        return published_estimate(
+            track, stamp, self.catalog[track.obj_id].name, self.config.verification
+        )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
         """The depth at which the part's expected box matches the detection's (SSD-6D)."""

@@ -5,7 +5,10 @@ Before any rotation is measured a track publishes its translation with an unknow
 (the identity, with the variance of an angle uniform on [-pi, pi]). With a mixture, the
 mixture's best component leads; after a verification the verified hypothesis leads, and with an
 accepted refinement its full pose and covariance are published (``verified``, unless a deferred
-verification waits for views fused since).
+verification waits for views fused since). A verified winner whose near-symmetric turns the
+views cannot tell from it (:func:`~estimator.verification.verify.alternative_turns`) is
+published as ambiguous: the turns beside it with their odds, and its rotation covariance widened
+to cover each of them.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from posefuse.estimator.core.geometry import so3_log
 from posefuse.estimator.tracker.tracks import Track
+from posefuse.estimator.verification.verify import VerificationConfig, alternative_turns
 
 ROTATION_UNKNOWN_VAR = np.pi**2 / 3  # variance of a rotation angle uniform on [-pi, pi]
 
@@ -28,6 +33,16 @@ class RotationHypothesis:
     q: np.ndarray  # (4,)
     weight: float
     n: int
+
+
+@dataclass(frozen=True, eq=False)
+class AlternativeTurn:
+    """A near-symmetric turn of the published rotation that the views cannot rule out: q
+    [x, y, z, w] the alternative rotation in the world frame, odds in [0, 1] its likelihood
+    against the published one (1: the views cannot tell them apart)."""
+
+    q: np.ndarray  # (4,)
+    odds: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,14 +68,32 @@ class ObjectEstimate:
     # when the refinement was accepted), for the views fused so far; False while a deferred
     # verification waits, and always without verification
     verified: bool = False
+    # the near-symmetric turns of the rotation the views cannot rule out, most likely first
+    # (odds >= VerificationConfig.ambiguous_odds), and the largest odds of any turn (0: none
+    # asked, or every one ruled out plainly)
+    alternatives: tuple[AlternativeTurn, ...] = ()
+    ambiguity: float = 0.0
+
+    @property
+    def ambiguous(self) -> bool:
+        """A near-symmetric turn of the rotation is as good as published, to the views."""
+        return len(self.alternatives) > 0
 
     @property
     def t_world_obj(self) -> np.ndarray:
         return self.T_world_obj[:3, 3]
 
 
-def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEstimate:
-    """What the track publishes at ``stamp_ns`` (see the module docstring)."""
+def published_estimate(
+    track: Track,
+    stamp_ns: int,
+    class_name: str,
+    verification: VerificationConfig | None = None,
+) -> ObjectEstimate:
+    """What the track publishes at ``stamp_ns`` (see the module docstring); ``verification``
+    gives the odds from which a turn is published as an alternative (default: the default
+    config's)."""
+    verification = verification or VerificationConfig()
     T = np.eye(4)
     T[:3, 3] = track.estimate.t_world_obj
     cov = np.zeros((6, 6))
@@ -70,6 +103,8 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
     hypotheses: tuple[RotationHypothesis, ...] = ()
     best = track.mixture.best() if track.mixture is not None else None
     verified = False
+    alternatives: tuple[AlternativeTurn, ...] = ()
+    ambiguity = 0.0
     if best is not None:
         T[:3, :3] = best.R_world_obj
         cov[3:, 3:] = best.cov
@@ -91,6 +126,11 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
                 T[:3, :3] = R_components[lead] = refined.R_world_obj
                 T[:3, 3] = refined.t_world_obj
                 cov = refined.cov.copy()
+            turns, odds = alternative_turns(verdict, verification.temperature)
+            ambiguity = float(odds.max()) if len(odds) else 0.0
+            alternatives, cov[3:, 3:] = _alternatives(
+                T[:3, :3], turns, odds, verification.ambiguous_odds, cov[3:, 3:]
+            )
         quats = Rotation.from_matrix(R_components).as_quat()
         hypotheses = tuple(
             RotationHypothesis(q, float(w), c.n)
@@ -110,4 +150,30 @@ def published_estimate(track: Track, stamp_ns: int, class_name: str) -> ObjectEs
         n_views=track.views_seen,
         status=track.status,
         verified=verified,
+        alternatives=alternatives,
+        ambiguity=ambiguity,
     )
+
+
+def _alternatives(
+    R_world_obj: np.ndarray,
+    turns: np.ndarray,
+    odds: np.ndarray,
+    min_odds: float,
+    cov_rot: np.ndarray,
+) -> tuple[tuple[AlternativeTurn, ...], np.ndarray]:
+    """The turns (A, 3, 3) with odds (A,) of at least ``min_odds``, most likely first, as
+    published alternatives of R_world_obj (3, 3), and the rotation covariance (3, 3) widened to
+    cover each: ``phi phi^T / 4`` added for the world-frame rotation vector ``phi`` that takes
+    the pose to the alternative, which puts it two standard deviations away along ``phi``."""
+    keep = [int(a) for a in np.argsort(-odds, kind="stable") if odds[a] >= min_odds]
+    if not keep:
+        return (), cov_rot
+    cov_rot = cov_rot.copy()
+    out = []
+    for a in keep:
+        R_alt = R_world_obj @ turns[a]
+        phi = so3_log(R_alt @ R_world_obj.T)  # left perturbation, world frame
+        cov_rot += np.outer(phi, phi) / 4.0
+        out.append(AlternativeTurn(Rotation.from_matrix(R_alt).as_quat(), float(odds[a])))
+    return tuple(out), cov_rot

@@ -37,6 +37,7 @@ from posefuse.estimator.verification.model_edges import (
 __all__ = [
     "ScoreCache",
     "VerificationConfig",
+    "alternative_turns",
     "agrees",
     "Verdict",
     "cached_scores",
@@ -85,6 +86,10 @@ class VerificationConfig:
     # every n-th edge sample is scored (ModelEdges.subset); a view too short of edge to say
     # anything is judged by its length of edge (min_points), whatever the sampling
     sample_stride: int = 1
+    # the winner is published as ambiguous when one of its near-symmetric turns is this likely
+    # against it, exp(-V (cost - best) / temperature) (:func:`alternative_turns`); the turn is
+    # then published beside it and the rotation covariance widened to cover it
+    ambiguous_odds: float = 0.1
 
     def __post_init__(self) -> None:
         if self.sample_stride < 1 or self.max_views < 1:
@@ -168,6 +173,38 @@ class Verdict:
     per_view: np.ndarray
     weights: np.ndarray
     best: int
+
+
+def alternative_turns(
+    verdict: Verdict, temperature: float, near_deg: float = 10.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """The winner's near-symmetric turns, and how likely the views find each against it.
+
+    The winner's alternatives are the hypotheses of its own component turned by the other
+    variants (:func:`hypotheses`). An alternative's cost is the lowest of the hypotheses within
+    ``near_deg`` of it (another component may lie there too), and its odds against the winner
+    are ``exp(-V (cost - best) / temperature)`` over the V views, the re-weighting's own factor:
+    1 when the views cannot tell the two apart, near 0 when they plainly can.
+
+    Returns:
+        turns: (A, 3, 3) object-frame rotations, the alternative being ``R_winner @ turn``;
+        odds: (A,) in [0, 1].
+    """
+    b = verdict.best
+    others = np.flatnonzero(verdict.component == verdict.component[b])
+    others = others[others != b]
+    if len(others) == 0:
+        return np.zeros((0, 3, 3)), np.zeros(0)
+    R_b = verdict.R_world_obj[b]
+    alternatives = verdict.R_world_obj[others]  # (A, 3, 3)
+    # the angle between every alternative and every hypothesis, (A, H)
+    relative = np.einsum("aji,hjk->ahik", alternatives, verdict.R_world_obj)
+    angle = rotation_angle(relative.reshape(-1, 3, 3)).reshape(len(others), -1)
+    near = angle <= np.deg2rad(near_deg)
+    cost = np.where(near, verdict.cost[None], np.inf).min(axis=1)
+    gap = np.maximum(cost - verdict.cost[b], 0.0)
+    odds = np.exp(-verdict.per_view.shape[1] * gap / temperature)
+    return np.einsum("ji,ajk->aik", R_b, alternatives), odds
 
 
 def is_new_viewpoint(

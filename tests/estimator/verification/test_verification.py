@@ -26,6 +26,7 @@ from posefuse.estimator.verification.verify import (
     ScoreCache,
     VerificationConfig,
     agrees,
+    alternative_turns,
     cached_scores,
     hypotheses,
     near_symmetries,
@@ -326,7 +327,11 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
             refined_count += 1
             assert np.allclose(estimate.T_world_obj[:3, :3], refined.R_world_obj, atol=1e-9)
             assert np.allclose(estimate.T_world_obj[:3, 3], refined.t_world_obj, atol=1e-12)
-            assert np.allclose(estimate.cov, refined.cov)
+            if estimate.ambiguous:  # widened to cover the alternatives, never narrowed
+                assert np.allclose(estimate.cov[:3], refined.cov[:3])
+                assert np.linalg.eigvalsh(estimate.cov[3:, 3:] - refined.cov[3:, 3:]).min() > -1e-12
+            else:
+                assert np.allclose(estimate.cov, refined.cov)
             # within the part's reach of the verified lead (a flip away is twice as far)
             reach = estimator.refinement_config(track.obj_id).accept_deg
             assert reach <= 90.0
@@ -1418,3 +1423,83 @@ def test_the_edge_maps_distance_is_within_a_fifth_of_a_pixel_of_the_exact_one():
     read = exact <= CONFIG.edges.truncate_px
     assert read.mean() > 0.5
     assert np.abs(mask5 - exact)[read].max() < 0.2
+
+
+def test_the_flip_one_view_cannot_rule_out_is_an_alternative_and_two_views_rule_it_out(
+    robi_catalog,
+):
+    """End-on, a screw head up and head down look alike: the winner's flip has high odds
+    against it. A side view tells them apart: the odds fall."""
+    screw = _model(robi_catalog, "chrome_screw")
+    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    center = T_world_obj[:3, 3]
+    end_on = center + np.array([0.0, 0.0, 2.0])
+    side = center + np.array([0.35, 0.12, 0.22])
+    views = _views(screw, T_world_obj, [end_on, side], CHROME)
+    axis = np.array([[0.0, 0.0, 1.0]])
+    variants = near_symmetries(screw.points, screw.diameter, np.eye(3)[None], axis)
+    edges = _edges(screw)
+    odds = {}
+    for name, seen in (("end-on", views[:1]), ("both", views)):
+        verdict = verify(edges, seen, np.eye(3)[None], np.array([1.0]), variants, center, CONFIG)
+        turns, odds[name] = alternative_turns(verdict, CONFIG.temperature)
+        # the turns are the winner's own variants, taken from it (R_alt = R_winner @ turn)
+        assert len(turns) == len(variants)
+        winner = verdict.R_world_obj[verdict.best]
+        for turn in turns:
+            R_alt = winner @ turn
+            assert (
+                np.min(rotation_angle(np.einsum("hji,jk->hik", verdict.R_world_obj, R_alt))) < 1e-9
+            )
+    assert odds["end-on"].max() >= CONFIG.ambiguous_odds, odds
+    assert odds["both"].max() < 0.5 * odds["end-on"].max(), odds
+
+
+def test_an_alternative_takes_the_lowest_cost_of_the_hypotheses_near_it():
+    from posefuse.estimator.verification.verify import Verdict
+
+    flip = so3_exp(np.array([np.pi, 0.0, 0.0]))
+    close_to_flip = flip @ so3_exp(np.array([0.0, 0.0, np.deg2rad(4.0)]))
+    R = np.stack([np.eye(3), flip, close_to_flip, so3_exp(np.array([0.0, 0.0, 1.0]))])
+    cost = np.array([0.20, 0.26, 0.22, 0.21])
+    verdict = Verdict(
+        R,
+        np.array([0, 0, 1, 2]),
+        np.array([0, 1, 0, 0]),
+        cost,
+        np.tile(cost[:, None], 3),
+        np.array([0.5, 0.3, 0.2]),
+        0,
+    )
+    turns, odds = alternative_turns(verdict, temperature=0.05)
+    np.testing.assert_allclose(turns, flip[None], atol=1e-12)
+    # the flip itself costs 0.26, another component 4 degrees from it 0.22: 3 views x 0.02
+    np.testing.assert_allclose(odds, [np.exp(-3 * 0.02 / 0.05)])
+    # a winner alone in its component has no alternatives
+    alone = Verdict(R[:1], np.array([0]), np.array([0]), cost[:1], cost[:1, None], np.ones(1), 0)
+    assert alternative_turns(alone, 0.05)[0].shape == (0, 3, 3)
+
+
+def test_a_published_alternative_is_covered_by_the_widened_covariance():
+    from posefuse.estimator.core.geometry import so3_log
+    from posefuse.estimator.tracker.published import _alternatives
+
+    R = so3_exp(np.array([0.3, -0.2, 0.5]))
+    half_turn = so3_exp(np.array([0.0, np.pi, 0.0]))
+    tooth = so3_exp(np.array([0.0, 0.0, np.pi / 6]))
+    cov = np.eye(3) * np.deg2rad(2.0) ** 2
+    published, widened = _alternatives(
+        R, np.stack([tooth, half_turn]), np.array([0.05, 0.4]), 0.1, cov
+    )
+    # only the turn at or above the odds is published, most likely first
+    assert len(published) == 1 and published[0].odds == 0.4
+    from scipy.spatial.transform import Rotation
+
+    R_alt = Rotation.from_quat(published[0].q).as_matrix()
+    np.testing.assert_allclose(R_alt, R @ half_turn, atol=1e-9)
+    # two standard deviations away along the turn, at most
+    phi = so3_log(R_alt @ R.T)
+    assert phi @ np.linalg.solve(widened, phi) <= 4.0 + 1e-9
+    assert np.all(np.linalg.eigvalsh(widened - cov) >= -1e-12)
+    none, same = _alternatives(R, tooth[None], np.array([0.05]), 0.1, cov)
+    assert none == () and np.array_equal(same, cov)
