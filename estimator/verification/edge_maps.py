@@ -46,7 +46,10 @@ class EdgeConfig:
     canny_low: int = 40
     canny_high: int = 100
     crease_deg: float = 35.0  # faces meeting at a sharper angle make a crease
-    max_faces: int = 2000  # the mesh is decimated to this many faces first
+    max_faces: int = 2000  # the mesh is decimated to this many faces first...
+    # ...or to twice as many, and so on, until its surface lies within this share of the
+    # diameter of the mesh's (95% of samples, both ways; model_edges.decimated)
+    max_deviation_frac: float = 0.01
     # edge samples of a model, at most: 1000 cut the step's cost by 30% and lost two chrome
     # screws on the tuning set (docs/lab/2026-12-03-verification-changed-mixture-fewer-samples.md)
     max_points: int = 2000

@@ -1503,3 +1503,29 @@ def test_a_published_alternative_is_covered_by_the_widened_covariance():
     assert np.all(np.linalg.eigvalsh(widened - cov) >= -1e-12)
     none, same = _alternatives(R, tooth[None], np.array([0.05]), 0.1, cov)
     assert none == () and np.array_equal(same, cov)
+
+
+def _ridged_ball() -> trimesh.Trimesh:
+    """A 10 cm ball of 20,480 faces with 24 ridges 3 mm high around its axis: detail that
+    quadric decimation erases first."""
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    v = ball.vertices
+    around = np.arctan2(v[:, 1], v[:, 0])
+    radius = 0.05 + 0.003 * np.sin(24 * around) * np.sqrt(1 - v[:, 2] ** 2)
+    return trimesh.Trimesh(v * radius[:, None], ball.faces)
+
+
+def test_decimation_keeps_the_surface_within_its_bound_adding_faces_where_it_must():
+    from posefuse.estimator.verification.model_edges import decimated, surface_deviation
+
+    ball = _ridged_ball()
+    bound = 0.001  # 1 mm, 1% of the diameter
+    assert surface_deviation(ball.simplify_quadric_decimation(face_count=200), ball) > bound
+    kept = decimated(ball, 200, bound)
+    assert 200 < len(kept.faces) < len(ball.faces) and surface_deviation(kept, ball) <= bound
+    # the fewest doublings that keep it: half as many faces would not
+    half = ball.simplify_quadric_decimation(face_count=len(kept.faces) // 2)
+    assert surface_deviation(half, ball) > bound
+    # a looser bound takes the fewest faces; a mesh already small enough is left as it is
+    assert len(decimated(ball, 200, 0.02).faces) == 200
+    assert decimated(ball, 10 * len(ball.faces), bound) is ball
