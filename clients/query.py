@@ -33,7 +33,7 @@ def objects_zenoh(session, cell: str = "posefuse", timeout: float = 5.0) -> list
 def table(objects: list[dict]) -> str:
     """A plain-text table of ObjectEstimate dicts, units in the headers, with a legend."""
     lines = [
-        f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5} {'verified':>8}  "
+        f"{'object_id':<18} {'status':<10} {'views':>5} {'conf':>5} {'verified':>8} {'ambig':>5}  "
         f"{'x (m)':>8} {'y (m)':>8} {'z (m)':>8}  {'roll (deg)':>10} {'pitch (deg)':>11} "
         f"{'yaw (deg)':>9}  {'sigma_t (mm)':>12}"
     ]
@@ -44,7 +44,8 @@ def table(objects: list[dict]) -> str:
         t = o["t"]
         lines.append(
             f"{o['object_id']:<18} {o['status']:<10} {o['n_views']:>5} {o['confidence']:>5.2f} "
-            f"{'yes' if o.get('verified') else 'no':>8}  "
+            f"{'yes' if o.get('verified') else 'no':>8} "
+            f"{len(o.get('alternatives') or []) or '-':>5}  "
             f"{t[0]:>8.4f} {t[1]:>8.4f} {t[2]:>8.4f}  {rpy[0]:>10.1f} {rpy[1]:>11.1f} "
             f"{rpy[2]:>9.1f}  {sigma:>12.2f}"
         )
@@ -52,6 +53,8 @@ def table(objects: list[dict]) -> str:
         "x, y, z: the object's origin in the world frame; roll, pitch, yaw: its rotation as",
         "extrinsic x-y-z Euler angles; conf: confidence in [0, 1]; sigma_t: square root of the",
         "trace of the translation covariance; verified: the pose is the one the object's views",
-        "agree on (checked across them and refined), not only its rotation mixture's best.",
+        "agree on (checked across them and refined), not only its rotation mixture's best;",
+        "ambig: how many near-symmetric turns of the rotation the views cannot rule out (the",
+        "alternatives of the ObjectEstimate, docs/protocol.md), '-' for none.",
     ]
     return "\n".join(lines)

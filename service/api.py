@@ -39,6 +39,8 @@ EXAMPLE_ESTIMATE = {
     "n_views": 6,
     "status": "confirmed",
     "verified": True,
+    "ambiguity": 0.0,
+    "alternatives": [],
 }
 
 
@@ -62,6 +64,17 @@ class ObjectEstimateModel(BaseModel):
         False,
         description="the pose is the one the object's views agree on (verified across them and "
         "refined); false while that check waits for the newest views, and without verification",
+    )
+    ambiguity: float = Field(
+        0.0,
+        description="the largest odds, in [0, 1], of a near-symmetric turn of the rotation "
+        "against it, as the verified views judge it (0: none, or each ruled out plainly)",
+    )
+    alternatives: list[dict] = Field(
+        default_factory=list,
+        description="the near-symmetric turns the views cannot rule out, most likely first: "
+        "{q: the alternative rotation [x, y, z, w], odds}; not empty means ambiguous, and the "
+        "rotation covariance then covers each",
     )
 
     model_config = {"json_schema_extra": {"examples": [EXAMPLE_ESTIMATE]}}

@@ -468,6 +468,10 @@ def estimate_to_dict(e) -> dict:
         "n_views": int(e.n_views),
         "status": e.status,
         "verified": bool(e.verified),
+        "ambiguity": float(e.ambiguity),
+        "alternatives": [
+            {"q": [float(x) for x in a.q], "odds": float(a.odds)} for a in e.alternatives
+        ],
     }
 
 

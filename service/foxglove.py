@@ -365,6 +365,7 @@ class FoxgloveMirror:
                 "confidence": f"{float(e['confidence']):.3f}",
                 "n_views": str(e.get("n_views", "")),
                 "verified": str(bool(e.get("verified", False))).lower(),
+                "ambiguous": str(bool(e.get("alternatives"))).lower(),
             }
             rgba = STATUS_RGBA.get(status, STATUS_RGBA["tentative"])
             entity = model_entity(stamp, frame, object_id, T, glb, rgba, meta)

@@ -310,3 +310,35 @@ def test_what_cameras_and_encoders_write_passes_the_structure_checks():
             check_decode_cost(cv2.imencode(".png", wide)[1].tobytes(), "png")
             rgba = np.concatenate([image, image[..., :1]], axis=2)
             check_decode_cost(cv2.imencode(".png", rgba)[1].tobytes(), "png")
+
+
+def test_an_ambiguous_estimate_round_trips_with_its_alternatives():
+    from posefuse.estimator.tracker import AlternativeTurn, ObjectEstimate, RotationHypothesis
+    from posefuse.service.codec import decode_estimate, encode_estimate
+
+    flip = Rotation.from_rotvec([np.pi, 0.0, 0.0])
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.0, 0.4]
+    alternative = AlternativeTurn(flip.as_quat(), 0.42)
+    estimate = ObjectEstimate(
+        5,
+        "screw-001",
+        2,
+        "chrome_screw",
+        T,
+        np.eye(6) * 1e-4,
+        0.6,
+        (RotationHypothesis(np.array([0.0, 0, 0, 1]), 1.0, 3),),
+        3,
+        "confirmed",
+        verified=True,
+        alternatives=(alternative,),
+        ambiguity=0.42,
+    )
+    back = decode_estimate(encode_estimate(estimate))
+    assert back["ambiguity"] == 0.42 and back["verified"] is True
+    assert len(back["alternatives"]) == 1 and back["alternatives"][0]["odds"] == 0.42
+    np.testing.assert_allclose(back["alternatives"][0]["q"], flip.as_quat())
+    plain = ObjectEstimate(5, "gear-001", 4, "gear", T, np.eye(6), 0.9, (), 3, "confirmed")
+    assert not plain.ambiguous
+    assert decode_estimate(encode_estimate(plain))["alternatives"] == []
