@@ -162,17 +162,24 @@ def test_a_silhouette_covers_the_mask_of_its_truth_and_not_that_of_a_flip_or_a_s
     assert silhouette_misses(edges.mesh, R_cam[:1], t_cam[:1], K[:1], [np.zeros((0, 2))])[0] == 0
 
 
+def _screw_end_on_and_side(catalog):
+    """The chrome screw standing on its tip, seen end-on from 2 m (a disc of 20 px, head up
+    or down alike) and from the side: (model, T_world_obj (4, 4), [end-on view, side view])."""
+    screw = _model(catalog, "chrome_screw")
+    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    center = T_world_obj[:3, 3]
+    end_on = center + np.array([0.0, 0.0, 2.0])
+    side = center + np.array([0.35, 0.12, 0.22])
+    return screw, T_world_obj, _views(screw, T_world_obj, [end_on, side], CHROME)
+
+
 def test_a_new_view_that_sees_the_flip_disagrees_with_it_and_one_that_cannot_agrees(
     robi_catalog,
 ):
     """The settled check (verification.agrees): a track settled on the flipped screw is
     verified again when the side view comes, and not for the end-on view, which cannot tell."""
-    screw = _model(robi_catalog, "chrome_screw")
-    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    screw, T_world_obj, views = _screw_end_on_and_side(robi_catalog)
     center = T_world_obj[:3, 3]
-    end_on = center + np.array([0.0, 0.0, 2.0])
-    side = center + np.array([0.35, 0.12, 0.22])
-    views = _views(screw, T_world_obj, [end_on, side], CHROME)
     truth = T_world_obj[:3, :3]
     flipped = truth @ so3_exp(np.array([np.pi, 0.0, 0.0]))
     edges = _edges(screw)
@@ -1430,12 +1437,8 @@ def test_the_flip_one_view_cannot_rule_out_is_an_alternative_and_two_views_rule_
 ):
     """End-on, a screw head up and head down look alike: the winner's flip has high odds
     against it. A side view tells them apart: the odds fall."""
-    screw = _model(robi_catalog, "chrome_screw")
-    T_world_obj = make_transform(np.eye(3), np.array([0.0, 0.0, 0.03]))
+    screw, T_world_obj, views = _screw_end_on_and_side(robi_catalog)
     center = T_world_obj[:3, 3]
-    end_on = center + np.array([0.0, 0.0, 2.0])
-    side = center + np.array([0.35, 0.12, 0.22])
-    views = _views(screw, T_world_obj, [end_on, side], CHROME)
     axis = np.array([[0.0, 0.0, 1.0]])
     variants = near_symmetries(screw.points, screw.diameter, np.eye(3)[None], axis)
     edges = _edges(screw)
