@@ -123,7 +123,9 @@ def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Cat
         else:
             disc, cont = report.discrete, report.continuous
             decided = "detected"
-        models.append(make_model(k + 1, name, mesh, disc, cont))
+        models.append(
+            make_model(k + 1, name, mesh, disc, cont, near_symmetries=report.alternatives)
+        )
         reports[name] = {
             "report": report,
             "decided": decided,

@@ -20,6 +20,7 @@ from scipy.spatial.distance import pdist
 from posefuse.estimator.core.errors import CatalogError, MeshError
 from posefuse.estimator.core.symmetry import (
     ContinuousSymmetry,
+    SymmetryAxis,
     describe_symmetries,
     detect_symmetries,
     symmetry_transforms,
@@ -47,6 +48,10 @@ class ObjectModel:
         symmetries_continuous: continuous symmetry axes (offset in metres).
         stored_eval_points: (M, 3) the catalog's ``models_eval`` points, metres, when stored
             (``posefuse.evaluation.eval_points.eval_points`` derives them otherwise).
+        near_symmetries: groups the symmetry detection found almost, not quite, exact and did
+            not claim (``SymmetryReport.alternatives``, the flags of the contact sheet: a gear's
+            teeth beside the hub that breaks them). Their turns the views are not asked about
+            are published as the pose's alternatives.
     """
 
     obj_id: int
@@ -57,6 +62,7 @@ class ObjectModel:
     symmetries_discrete: np.ndarray  # (D, 4, 4)
     symmetries_continuous: tuple[ContinuousSymmetry, ...] = ()
     stored_eval_points: np.ndarray | None = None  # (M, 3)
+    near_symmetries: tuple[SymmetryAxis, ...] = ()
 
     @property
     def is_symmetric(self) -> bool:
@@ -150,16 +156,20 @@ def make_model(
     symmetries_discrete: np.ndarray | None = None,
     symmetries_continuous: tuple[ContinuousSymmetry, ...] | None = None,
     detect: bool = True,
+    near_symmetries: tuple[SymmetryAxis, ...] | None = None,
 ) -> ObjectModel:
     """Build an ObjectModel from a mesh in metres.
 
     Symmetries given by the caller (e.g. from ``models_info.json``) are used as they are; when
-    none are given and ``detect`` is True they are detected from the mesh.
+    none are given and ``detect`` is True they are detected from the mesh, and the groups the
+    detection did not claim become its near-symmetries (unless the caller gives those too).
     """
     diameter = mesh_diameter(mesh)
     if symmetries_discrete is None and symmetries_continuous is None and detect:
         report = detect_symmetries(mesh, diameter)
         symmetries_discrete, symmetries_continuous = report.discrete, report.continuous
+        if near_symmetries is None:
+            near_symmetries = report.alternatives
     disc = np.zeros((0, 4, 4)) if symmetries_discrete is None else np.asarray(symmetries_discrete)
     cont = tuple(symmetries_continuous or ())
     return ObjectModel(
@@ -170,6 +180,7 @@ def make_model(
         points=sample_model_points(mesh, seed=MODEL_POINTS_SEED),
         symmetries_discrete=disc.reshape(-1, 4, 4),
         symmetries_continuous=cont,
+        near_symmetries=tuple(near_symmetries or ()),
     )
 
 
@@ -240,7 +251,38 @@ def _info_entry(model: ObjectModel) -> dict:
             }
             for s in model.symmetries_continuous
         ]
+    if model.near_symmetries:
+        # not BOP's: the groups almost found (ObjectModel.near_symmetries)
+        entry["near_symmetries"] = [
+            {
+                "axis": [round(float(a), 9) for a in s.axis],
+                "order": int(s.order),
+                "residual": round(float(s.residual), 6),
+            }
+            for s in model.near_symmetries
+        ]
     return entry
+
+
+def _parse_near_symmetries(entry: dict, where: str, info_path: Path) -> tuple[SymmetryAxis, ...]:
+    """The entry's ``near_symmetries`` (posefuse's key; absent: none)."""
+    out = []
+    for i, near in enumerate(entry.get("near_symmetries", [])):
+        try:
+            axis = np.asarray(near["axis"], dtype=np.float64).reshape(3)
+            order = int(near["order"])
+            residual = float(near.get("residual", 0.0))
+        except (KeyError, TypeError, ValueError):
+            raise CatalogError(
+                info_path, f"{where}: near_symmetries[{i}] needs axis[3] and an integer order"
+            ) from None
+        n = np.linalg.norm(axis)
+        if not np.isfinite(n) or n < 1e-9 or order < 2 or not np.isfinite(residual):
+            raise CatalogError(
+                info_path, f"{where}: near_symmetries[{i}] needs a unit axis and an order >= 2"
+            )
+        out.append(SymmetryAxis(tuple(float(a) for a in axis / n), order, residual))
+    return tuple(out)
 
 
 def eval_points_path(models_dir: str | Path, obj_id: int) -> Path:
@@ -356,7 +398,8 @@ def load_catalog(models_dir: str | Path, detect_symmetries_if_missing: bool = Fa
         disc, cont = _parse_symmetries(entry, where, info_path)
         name = str(entry.get("name", f"obj_{obj_id:06d}"))
         if has_syms or not detect_symmetries_if_missing:
-            model = make_model(obj_id, name, mesh, disc, cont, detect=False)
+            near = _parse_near_symmetries(entry, where, info_path)
+            model = make_model(obj_id, name, mesh, disc, cont, detect=False, near_symmetries=near)
         else:
             model = make_model(obj_id, name, mesh, detect=True)
         eval_path = eval_points_path(models_dir, obj_id)

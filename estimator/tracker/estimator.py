@@ -461,8 +461,12 @@ class MultiViewEstimator:
         self.book.keep_held(obj_id, pool)
 
     def _estimate(self, track: Track, stamp: int) -> ObjectEstimate:
+        unasked = None
+        if track.verdict is not None:
+            self.poses.model_edges(track.obj_id)  # made by the verification (or a restore)
+            unasked = self.poses.unasked[track.obj_id]
         return published_estimate(
-            track, stamp, self.catalog[track.obj_id].name, self.config.verification
+            track, stamp, self.catalog[track.obj_id].name, self.config.verification, unasked
         )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:

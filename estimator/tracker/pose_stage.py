@@ -43,6 +43,7 @@ from posefuse.estimator.verification.verify import (
     hypotheses,
     is_new_viewpoint,
     near_symmetries,
+    near_symmetry_turns,
     refinement_reach_deg,
     verify,
 )
@@ -70,6 +71,9 @@ class PoseStage:
         self.images: dict[int, np.ndarray] = {}  # stamp_ns -> image, the last few frames
         self.edges: dict[int, ModelEdges] = {}  # per class, for verification
         self.variants: dict[int, np.ndarray] = {}  # per class, near-symmetric turns (M, 3, 3)
+        # per class, the turns of its catalog's near-symmetric groups that the verification
+        # does not ask about (K, 3, 3): published as the pose's alternatives
+        self.unasked: dict[int, np.ndarray] = {}
         # per class, the refinement's settings with its turn bounded by the class's basin
         self.refine_configs: dict[int, RefineConfig] = {}
 
@@ -118,6 +122,14 @@ class PoseStage:
             axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
             self.variants[obj_id] = near_symmetries(
                 model.points, model.diameter, sym, axes, cfg.near_frac, cfg.max_variants
+            )
+            near = model.near_symmetries
+            self.unasked[obj_id] = near_symmetry_turns(
+                np.array([g.axis for g in near]).reshape(-1, 3),
+                np.array([g.order for g in near], int),
+                sym,
+                axes,
+                self.variants[obj_id],
             )
             reach = refinement_reach_deg(self.variants[obj_id], sym, axes)
             rcfg = self.config.refinement

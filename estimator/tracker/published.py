@@ -89,10 +89,13 @@ def published_estimate(
     stamp_ns: int,
     class_name: str,
     verification: VerificationConfig | None = None,
+    unasked: np.ndarray | None = None,
 ) -> ObjectEstimate:
     """What the track publishes at ``stamp_ns`` (see the module docstring); ``verification``
     gives the odds from which a turn is published as an alternative (default: the default
-    config's)."""
+    config's). ``unasked`` (K, 3, 3) are object-frame turns of the part the verification does
+    not ask the views about (``PoseStage.unasked``: a gear's teeth): a verified pose publishes
+    each as an alternative with odds 1, since nothing rules it out."""
     verification = verification or VerificationConfig()
     T = np.eye(4)
     T[:3, 3] = track.estimate.t_world_obj
@@ -127,6 +130,9 @@ def published_estimate(
                 T[:3, 3] = refined.t_world_obj
                 cov = refined.cov.copy()
             turns, odds = alternative_turns(verdict, verification.temperature)
+            if unasked is not None and len(unasked):
+                turns = np.concatenate([turns, unasked])
+                odds = np.concatenate([odds, np.ones(len(unasked))])
             ambiguity = float(odds.max()) if len(odds) else 0.0
             alternatives, cov[3:, 3:] = _alternatives(
                 T[:3, :3], turns, odds, verification.ambiguous_odds, cov[3:, 3:]

@@ -44,6 +44,7 @@ __all__ = [
     "hypotheses",
     "is_new_viewpoint",
     "near_symmetries",
+    "near_symmetry_turns",
     "refinement_reach_deg",
     "score_hypotheses",
     "verify",
@@ -293,6 +294,52 @@ def near_symmetries(
         else:
             kept.append(R)
         if len(kept) >= max_variants:
+            break
+    return np.array(kept).reshape(-1, 3, 3)
+
+
+def near_symmetry_turns(
+    axes: np.ndarray,
+    orders: np.ndarray,
+    symmetries: np.ndarray,
+    continuous_axes: np.ndarray,
+    known: np.ndarray | None = None,
+    max_turns: int = 32,
+) -> np.ndarray:
+    """The turns of a part's near-symmetric groups (``ObjectModel.near_symmetries``, what its
+    symmetry detection almost found): every ``2 pi k / n`` about each axis, up to the part's
+    symmetries, without the identity and the ``known`` turns (M, 3, 3) (within 2 degrees).
+
+    A gear of 28 teeth whose hub is only 2-fold has 13 such turns about its axis, the tooth
+    counts a view may confuse; :func:`near_symmetries` (30 degrees and more) asks about none of
+    them, and the views' costs between whole teeth differ by noise, not evidence
+    (docs/lab/2026-12-05-real-meshes-decimation-and-ambiguity.md).
+
+    Args:
+        axes: (G, 3) unit axes, object frame; orders: (G,) n of each group.
+        symmetries: (S, 3, 3) symmetry rotations with the identity first; continuous_axes:
+        (A, 3).
+    Returns:
+        (K, 3, 3), K <= max_turns, smallest turns first.
+    """
+    candidates = []
+    for axis, n in zip(
+        np.asarray(axes, float).reshape(-1, 3), np.asarray(orders, int), strict=True
+    ):
+        for k in range(1, int(n)):
+            angle = 2 * np.pi * k / n
+            candidates.append((min(angle, 2 * np.pi - angle), so3_exp(angle * axis)))
+    candidates.sort(key=lambda c: c[0])
+    refs = [np.eye(3), *np.asarray(known if known is not None else [], float).reshape(-1, 3, 3)]
+    kept: list[np.ndarray] = []
+    for _, R in candidates:
+        if any(
+            closest_equivalents(R[None], ref, symmetries, continuous_axes)[1][0] < np.deg2rad(2.0)
+            for ref in refs + kept
+        ):
+            continue
+        kept.append(R)
+        if len(kept) >= max_turns:
             break
     return np.array(kept).reshape(-1, 3, 3)
 

@@ -62,3 +62,29 @@ def test_extra_real_mesh_symmetries(name):
     if name == "gear":
         assert [a.order for a in report.alternatives] == [28]
         assert report.flags
+
+
+def test_near_symmetries_travel_with_the_catalog_and_bad_ones_are_refused(tmp_path):
+    import dataclasses
+    import json
+
+    from posefuse.estimator.core.errors import CatalogError
+    from posefuse.estimator.core.objects import write_catalog
+    from posefuse.estimator.core.symmetry import SymmetryAxis
+
+    catalog = load_catalog(DEFAULT_CATALOG)
+    gear = next(m for m in catalog.values() if m.name == "gear")
+    teeth = SymmetryAxis((0.0, 0.0, 1.0), 28, 0.0152)
+    models = [
+        dataclasses.replace(m, near_symmetries=(teeth,)) if m is gear else m
+        for m in catalog.values()
+    ]
+    back = load_catalog(write_catalog(tmp_path / "models", models))
+    assert back[gear.obj_id].near_symmetries == (teeth,)
+    assert all(not m.near_symmetries for k, m in back.items() if k != gear.obj_id)
+    info_path = tmp_path / "models" / "models_info.json"
+    info = json.loads(info_path.read_text())
+    info[str(gear.obj_id)]["near_symmetries"] = [{"axis": [0, 0, 1], "order": 1}]
+    info_path.write_text(json.dumps(info))
+    with pytest.raises(CatalogError, match=r"near_symmetries\[0\] needs a unit axis and an order"):
+        load_catalog(tmp_path / "models")

@@ -293,12 +293,14 @@ def test_verify_without_views_says_nothing(robi_catalog):
     )
 
 
-def _run_scene(dataset, scene_id, config=None, banks=None):
+def _run_scene(dataset, scene_id, config=None, banks=None, catalog=None):
+    """The estimator after a scene's views on oracle detections; ``catalog`` in place of the
+    dataset's (the same parts, other settings)."""
     from posefuse.estimator.tracker import Frame, MultiViewEstimator
     from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 
     front = OracleFrontend(dataset, OracleConfig(center_sigma_px=1.0, with_masks=True, seed=0))
-    estimator = MultiViewEstimator(dataset.catalog, config, banks=banks)
+    estimator = MultiViewEstimator(catalog or dataset.catalog, config, banks=banks)
     scene = dataset.scene(scene_id)
     for im in scene.im_ids:
         view = scene.view(im)
@@ -1532,3 +1534,69 @@ def test_decimation_keeps_the_surface_within_its_bound_adding_faces_where_it_mus
     # a looser bound takes the fewest faces; a mesh already small enough is left as it is
     assert len(decimated(ball, 200, 0.02).faces) == 200
     assert decimated(ball, 10 * len(ball.faces), bound) is ball
+
+
+def test_a_near_symmetric_group_gives_its_turns_up_to_the_symmetries_and_the_known():
+    from posefuse.estimator.verification.verify import near_symmetry_turns
+
+    z = np.array([[0.0, 0.0, 1.0]])
+    half_turn = so3_exp(np.array([0.0, 0.0, np.pi]))
+    none = np.zeros((0, 3))
+    # 28 teeth on a hub that is only 2-fold: 13 tooth counts (k and k + 14 teeth are one
+    # under the half turn), the smallest first: +-1 tooth, +-2, ..., 7 (a quarter turn)
+    turns = near_symmetry_turns(z, np.array([28]), np.stack([np.eye(3), half_turn]), none)
+    teeth = np.rad2deg(rotation_angle(turns)) / (360 / 28)
+    np.testing.assert_allclose(teeth, [1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7], atol=1e-9)
+    # declared a symmetry, the group leaves nothing; a known turn is not given again
+    teeth = np.stack([so3_exp(np.array([0.0, 0.0, 2 * np.pi * k / 28])) for k in range(28)])
+    assert len(near_symmetry_turns(z, np.array([28]), teeth, none)) == 0
+    known = so3_exp(np.array([0.0, 0.0, 2 * np.pi / 28]))[None]
+    assert len(near_symmetry_turns(z, np.array([28]), np.eye(3)[None], none, known)) == 26
+
+
+def test_a_verified_part_with_unasked_near_symmetric_turns_publishes_them(
+    small_dataset_root, default_banks
+):
+    """The catalog's near-symmetric group that the verification does not ask about (a gear's
+    teeth) is published beside every verified pose of the part, with odds 1, and the rotation
+    covariance covers it; other parts are left as they were."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from posefuse.estimator.core.objects import Catalog
+    from posefuse.estimator.core.symmetry import SymmetryAxis
+    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.evaluation.dataset import load_dataset
+
+    dataset = load_dataset(small_dataset_root)
+    plain = _run_scene(dataset, dataset.scene_ids[0], TrackerConfig(), default_banks)
+    verified = {e.class_id for e in plain.estimates() if plain.tracks[e.object_id].verdict}
+    assert verified
+    target = min(verified)
+    axis = SymmetryAxis((1.0, 0.0, 0.0), 7, 0.02)  # a made-up 7-fold group about x
+    models = [
+        dataclasses.replace(m, near_symmetries=(axis,)) if k == target else m
+        for k, m in dataset.catalog.items()
+    ]
+    estimator = _run_scene(
+        dataset, dataset.scene_ids[0], TrackerConfig(), default_banks, Catalog(models)
+    )
+    by_id = {e.object_id: e for e in plain.estimates()}
+    seen = 0
+    for e in estimator.estimates():
+        if not estimator.tracks[e.object_id].verdict:
+            continue
+        if e.class_id != target:
+            assert [a.odds for a in e.alternatives] == [
+                a.odds for a in by_id[e.object_id].alternatives
+            ]
+            continue
+        seen += 1
+        unasked = [a for a in e.alternatives if a.odds == 1.0]
+        assert len(unasked) >= 3 and e.ambiguous and e.ambiguity == 1.0
+        R = e.T_world_obj[:3, :3]
+        for a in unasked:
+            phi = Rotation.from_matrix(Rotation.from_quat(a.q).as_matrix() @ R.T).as_rotvec()
+            assert phi @ np.linalg.solve(e.cov[3:, 3:], phi) <= 4.0 + 1e-6
+    assert seen > 0
