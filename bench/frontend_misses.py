@@ -48,7 +48,8 @@ def view_fates(fe: NetworkFrontend, image: np.ndarray, view, stamp_seed: int):
     boxes = fe.boxes(image)
     first_pass = fe.stage_two(image, boxes, np.random.default_rng([fe.seed, stamp_seed]))
     final = fe.detect(image, stamp_seed=stamp_seed)
-    gts, truth, pairs = match_to_truth(final, view, MAX_PX)
+    agnostic = fe.card.agnostic  # a generalist's boxes and detections are of any class
+    gts, truth, pairs = match_to_truth(final, view, MAX_PX, any_class=agnostic)
     found = set(pairs.values())
     obj_ids = [k for k, _ in fe.card.classes]
     fates, errors = [], []
@@ -63,7 +64,7 @@ def view_fates(fe: NetworkFrontend, image: np.ndarray, view, stamp_seed: int):
         near = [
             (float(np.linalg.norm(b.center - visible_center)), i)
             for i, b in enumerate(boxes)
-            if obj_ids[b.class_index] == gt.obj_id
+            if agnostic or obj_ids[b.class_index] == gt.obj_id
         ]
         if not near or min(near)[0] > BOX_NEAR * max(w, h):
             fates.append("no box")

@@ -27,16 +27,19 @@ MAX_PX = 15.0
 MIN_VISIB = 0.75
 
 
-def score_view(detections, rows: np.ndarray, class_of: dict[int, int]) -> tuple[int, int, int]:
+def score_view(
+    detections, rows: np.ndarray, class_of: dict[int, int], any_class: bool = False
+) -> tuple[int, int, int]:
     """(parts found, parts more than 75% visible, detections matched) of one view.
 
     Args:
         detections: the front end's detections.
         rows: (K, 11) the view's instance rows (``sim.train_data.INSTANCE_COLUMNS``).
         class_of: output class index (1..C) -> obj_id.
+        any_class: a generalist's detections ("a part") match parts of any class.
     """
     obj_ids = [class_of[int(r[2])] for r in rows]
-    matched = set(match_centers(detections, obj_ids, rows[:, 3:5], MAX_PX).values())
+    matched = set(match_centers(detections, obj_ids, rows[:, 3:5], MAX_PX, any_class).values())
     visible = rows[:, 9] > MIN_VISIB
     found = sum(1 for j in matched if visible[j])
     return found, int(visible.sum()), len(matched)
@@ -74,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         seen[profile] += 1
         detections = fe.detect(np.asarray(ts.full_rgb[v]), stamp_seed=v)
-        found, parts, matched = score_view(detections, rows_of[v], class_of)
+        found, parts, matched = score_view(detections, rows_of[v], class_of, fe.card.agnostic)
         totals[profile] += (found, parts, matched, len(detections))
     print(f"model {args.model}, training set {args.training_set}")
     print("| profile | views | parts | recall | precision |")

@@ -24,6 +24,21 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
     from posefuse.estimator.core.objects import Catalog, load_mesh, make_model, write_catalog
     from posefuse.evaluation.eval_points import with_eval_points
 
+    if args.family is not None:
+        from posefuse.sim.family import family_models  # lazy: manifold3d, trimesh
+
+        if args.mesh:
+            raise PosefuseError("--family and --mesh: give one or the other")
+        if args.family < 1:
+            raise PosefuseError(f"--family: {args.family}: must be at least 1")
+        catalog = Catalog(family_models(args.family, args.family_seed))
+        write_catalog(Path(args.out), catalog)
+        from posefuse.sim.contact_sheet import write_family_sheet
+
+        sheet = write_family_sheet(catalog, Path(args.out) / "family.png")
+        print(f"wrote {len(catalog)} shapes of family seed {args.family_seed} to {args.out}")
+        print(f"their picture: {sheet}")
+        return 0
     if args.mesh:
         models = []
         for k, path in enumerate(args.mesh):
@@ -137,6 +152,21 @@ def register(subparsers) -> None:
         help="a mesh file (STL/PLY/OBJ); repeat for more (default: the procedural parts)",
     )
     p.add_argument("--units", default="mm", choices=["mm", "cm", "m"], help="units of --mesh files")
+    p.add_argument(
+        "--family",
+        type=int,
+        default=None,
+        metavar="N",
+        help="N shapes of the procedural part family instead (the five parts first, then drawn "
+        "turned parts, fasteners, fittings, brackets, gears, castings, plates, flanges, rings), "
+        "for training a generalist front end; symmetries are not detected",
+    )
+    p.add_argument(
+        "--family-seed",
+        type=int,
+        default=1,
+        help="seed of the drawn family shapes (tuning families take seeds of their own)",
+    )
     p.set_defaults(func=_cmd_catalog)
 
     p = add_command(subparsers, "synth", "render a BOP multi-view bin-picking dataset")

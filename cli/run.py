@@ -354,8 +354,10 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
         image = dataset.scene(view.scene_id).load_rgb(view.im_id)
         return frontend.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
 
-    score = score_frontend(dataset, detect, views, min_visib=args.min_visib)
-    print(f"Front end {args.model} on {args.dataset} (profile {dataset.profile}):\n")
+    agnostic = frontend.card.agnostic  # a generalist's "a part" matches a part of any class
+    score = score_frontend(dataset, detect, views, min_visib=args.min_visib, any_class=agnostic)
+    kind = " (a generalist: classes not scored)" if agnostic else ""
+    print(f"Front end {args.model}{kind} on {args.dataset} (profile {dataset.profile}):\n")
     print(score.to_markdown())
     return 0
 

@@ -67,6 +67,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         run_steps=args.run_steps,
         extend=(args.extend, args.extend_lr) if args.extend else None,
         vote_loss=args.vote_loss,
+        agnostic=args.agnostic,
+        materials=args.materials,
     )
     card = train(args.catalog, args.out, config)
     print(json.dumps(card, indent=2))
@@ -203,5 +205,18 @@ def register(subparsers) -> None:
         type=float,
         default=0.5,
         help="share of training scenes in the robi profile, the rest mixed",
+    )
+    p.add_argument(
+        "--agnostic",
+        action="store_true",
+        help="one class, 'a part', for every object: the generalist of a shape family "
+        "(posefuse catalog --family), which onboarding fine-tunes from",
+    )
+    p.add_argument(
+        "--materials",
+        default="catalog",
+        choices=["catalog", "random"],
+        help="catalog: each part as it will be seen; random: a factory material drawn per part "
+        "type and scene (metal, chrome, oxide, paint, plastic)",
     )
     p.set_defaults(func=_cmd_train)

@@ -42,20 +42,23 @@ class FrontendScore:
         )
 
 
-def match_centers(dets, obj_ids, truth: np.ndarray, max_px: float = 15.0) -> dict[int, int]:
+def match_centers(
+    dets, obj_ids, truth: np.ndarray, max_px: float = 15.0, any_class: bool = False
+) -> dict[int, int]:
     """One-to-one matching of detections to annotated instances of their class by center
     distance (Hungarian, at most ``max_px``).
 
     Args:
         dets: the detections; obj_ids: (N,) the instances' classes; truth: (N, 2) their
-            projected centers, image pixels.
+            projected centers, image pixels; any_class: match regardless of class (a
+            generalist's detections, which say "a part" only).
     Returns:
         {detection index: instance index}.
     """
     cost = np.full((len(dets), len(truth)), 1e9)
     for i, d in enumerate(dets):
         for j, obj_id in enumerate(obj_ids):
-            if d.obj_id == obj_id:
+            if any_class or d.obj_id == obj_id:
                 dist = float(np.linalg.norm(d.center_uv - truth[j]))
                 if dist <= max_px:
                     cost[i, j] = dist
@@ -65,7 +68,7 @@ def match_centers(dets, obj_ids, truth: np.ndarray, max_px: float = 15.0) -> dic
     return {int(i): int(j) for i, j in zip(rows, cols, strict=True) if cost[i, j] < 1e9}
 
 
-def match_to_truth(dets, view, max_px: float = 15.0):
+def match_to_truth(dets, view, max_px: float = 15.0, any_class: bool = False):
     """:func:`match_centers` against a BOP view's annotated instances.
 
     Returns:
@@ -74,18 +77,21 @@ def match_to_truth(dets, view, max_px: float = 15.0):
     """
     gts = [g for g in view.gts if g.T_cam_obj[2, 3] > 0]
     truth = np.array([view.camera.project(g.T_cam_obj[:3, 3]) for g in gts]).reshape(-1, 2)
-    return gts, truth, match_centers(dets, [g.obj_id for g in gts], truth, max_px)
+    return gts, truth, match_centers(dets, [g.obj_id for g in gts], truth, max_px, any_class)
 
 
-def score_frontend(dataset, detect, views, min_visib: float = 0.75, max_px: float = 15.0):
-    """detect(view) -> list[Detection]; views: the BopViews to score."""
+def score_frontend(
+    dataset, detect, views, min_visib: float = 0.75, max_px: float = 15.0, any_class: bool = False
+):
+    """detect(view) -> list[Detection]; views: the BopViews to score; any_class: a detection
+    may match an instance of any class (a generalist's, see ``match_centers``)."""
     n_inst = n_found = n_det = n_det_ok = n_views = 0
     errors, nees = [], []
     for view in views:
         n_views += 1
         dets = detect(view)
         n_det += len(dets)
-        gts, truth, pairs = match_to_truth(dets, view, max_px)
+        gts, truth, pairs = match_to_truth(dets, view, max_px, any_class)
         matched = {j: i for i, j in pairs.items()}
         n_det_ok += len(matched)
         for j, g in enumerate(gts):

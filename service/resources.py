@@ -22,5 +22,8 @@ def shipped(*parts: str) -> Path:
 DEFAULT_CATALOG = str(shipped("catalogs", "robi_like"))
 # The front end trained on it (its card, crop model and checkpoint beside it in models/).
 DEFAULT_MODEL = str(shipped("models", "robi_like.onnx"))
+# The generalist front end, trained on the procedural part family (``posefuse catalog
+# --family``) to say "a part" of any shape; onboarding starts from its checkpoint when shipped.
+GENERALIST_MODEL = str(shipped("models", "generalist.onnx"))
 # The demo recording (3 bin scenes x 8 views of the catalog, with their ground truth).
 DEFAULT_RECORDING = str(shipped("recordings", "demo.mcap"))

@@ -141,3 +141,46 @@ def _wrap(text: str, width: int) -> list[str]:
         else:
             line = f"{line} {word}".strip()
     return lines + [line] if line else lines
+
+
+FAMILY_PANEL = 160  # pixels per shape in a family's picture
+FAMILY_COLUMNS = 10
+
+
+def render_family_sheet(catalog, limit: int = 100) -> np.ndarray:
+    """(H, W, 3) uint8 BGR: the first ``limit`` shapes of a catalog, one oblique view each, each
+    filling its panel, with its obj_id and name."""
+    ids = sorted(catalog)[:limit]
+    focal = 2.2 * FAMILY_PANEL
+    c = (FAMILY_PANEL - 1) / 2.0
+    camera = Camera(
+        np.array([[focal, 0, c], [0, focal, c], [0, 0, 1.0]]), FAMILY_PANEL, FAMILY_PANEL
+    )
+    v = np.asarray(VIEWS[0]) / np.linalg.norm(VIEWS[0])
+    panels = []
+    for obj_id in ids:
+        model = catalog[obj_id]
+        distance = focal * model.diameter / (0.85 * FAMILY_PANEL)
+        T_cam_obj = np.eye(4)
+        T_cam_obj[:3, :3] = look_at_rotation(v)
+        T_cam_obj[:3, 3] = [0.0, 0.0, distance]
+        result = Renderer([model.mesh]).render(
+            camera, np.linalg.inv(T_cam_obj), DEFAULT_LIGHTING, shadows=False
+        )
+        image = np.ascontiguousarray(cv2.cvtColor(result.image, cv2.COLOR_RGB2BGR))
+        label = f"{obj_id} {model.name.split('_')[0]}"
+        cv2.putText(image, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, WHITE, 1, cv2.LINE_AA)
+        panels.append(image)
+    while len(panels) % FAMILY_COLUMNS:
+        panels.append(np.zeros_like(panels[0]))
+    rows = [
+        np.hstack(panels[k : k + FAMILY_COLUMNS]) for k in range(0, len(panels), FAMILY_COLUMNS)
+    ]
+    return np.vstack(rows)
+
+
+def write_family_sheet(catalog, out: str | Path, limit: int = 100) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), render_family_sheet(catalog, limit))
+    return out

@@ -231,17 +231,22 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
 def initial_checkpoint(config) -> str | None:
     """The checkpoint onboarding fine-tunes from: ``config.init``, where "shipped" means the
-    shipped model's (``models/robi_like.ckpt``) when it is there."""
+    shipped generalist's (``models/generalist.ckpt``: it has seen hundreds of part shapes, so
+    its backbone and stage two know what a part is) when it is there, else the shipped catalog
+    model's (``models/robi_like.ckpt``)."""
     if config.init is None:
         return None
     if config.init != "shipped":
         if not Path(config.init).is_file():
             raise PosefuseError(f"--init: {config.init}: no such checkpoint")
         return config.init
-    from posefuse.service.resources import DEFAULT_MODEL
+    from posefuse.service.resources import DEFAULT_MODEL, GENERALIST_MODEL
 
-    shipped = Path(DEFAULT_MODEL).with_suffix(".ckpt")
-    return str(shipped) if shipped.is_file() else None
+    for model in (GENERALIST_MODEL, DEFAULT_MODEL):
+        shipped = Path(model).with_suffix(".ckpt")
+        if shipped.is_file():
+            return str(shipped)
+    return None
 
 
 def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:

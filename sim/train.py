@@ -37,7 +37,14 @@ from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
 from posefuse.estimator.core.objects import load_catalog
-from posefuse.estimator.frontend.network import MEAN, STD, ModelCard, NetworkFrontend, catalog_hash
+from posefuse.estimator.frontend.network import (
+    AGNOSTIC_CLASSES,
+    MEAN,
+    STD,
+    ModelCard,
+    NetworkFrontend,
+    catalog_hash,
+)
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import score_frontend
 from posefuse.sim.scenes import REALSENSE_1280x720
@@ -87,6 +94,10 @@ class TrainConfig:
     seed: int = 0
     workers: int = 2
     robi_fraction: float = 0.5
+    # one class, "a part", for every object of the catalog: the generalist front end of the
+    # shape family (``posefuse catalog --family``), which onboarding starts from
+    agnostic: bool = False
+    materials: str = "catalog"  # or "random": see sim.train_data.RenderSpec
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -155,6 +166,8 @@ _STREAM_FIELDS = (
     "seed",
     "robi_fraction",
     "restarts",
+    "agnostic",
+    "materials",
 )
 
 
@@ -277,6 +290,11 @@ class _Nets:
         for k, v in state["det"].items():
             if k in det and det[k].shape == v.shape:
                 det[k] = v
+            elif k.startswith("heatmap.") and k in det and v.shape[0] == 1:
+                # a generalist's one "part" heatmap: every new class starts as "a part" and
+                # learns from there which part it is
+                det[k] = v.expand_as(det[k]).clone()
+                fresh.append(f"{k} (every class from the generalist's one)")
             else:
                 fresh.append(k)
         self.det.load_state_dict(det)
@@ -415,7 +433,10 @@ def _card(
     catalog, config: TrainConfig, model_path: Path, cov_scale: float, extra: dict
 ) -> ModelCard:
     return ModelCard(
-        classes=tuple((k, m.name) for k, m in sorted(catalog.items())),
+        classes=AGNOSTIC_CLASSES
+        if config.agnostic
+        else tuple((k, m.name) for k, m in sorted(catalog.items())),
+        agnostic=config.agnostic,
         catalog_hash=catalog_hash(catalog),
         image_size=(REALSENSE_1280x720.width, REALSENSE_1280x720.height),
         input_scale=INPUT_SCALE,
@@ -446,7 +467,7 @@ def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> 
             image = ds.scene(view.scene_id).load_rgb(view.im_id)
             return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
 
-        s = score_frontend(ds, detect, list(ds.views()))
+        s = score_frontend(ds, detect, list(ds.views()), any_class=fe.card.agnostic)
         out[Path(root).name] = {
             "recall": s.recall,
             "precision": s.precision,
@@ -468,6 +489,8 @@ def calibrate(model_path: Path, val: TrainingSet, catalog, seed: int = 0) -> tup
     card_path.write_text(json.dumps(data, indent=2) + "\n")
     fe = NetworkFrontend(model_path, catalog, seed=seed)
     obj_of_class = {k + 1: obj_id for k, obj_id in enumerate(sorted(catalog))}
+    if fe.card.agnostic:  # every row's class is "a part", as are the detections
+        obj_of_class = dict.fromkeys(obj_of_class, AGNOSTIC_CLASSES[0][0])
     nees, errors = [], []
     n_true = n_found = 0
     rows_of = val.view_instances()
@@ -562,15 +585,21 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
     spec = RenderSpec(
-        config.n_scenes, config.views_per_scene, TRAIN_SEED_BASE, config.robi_fraction
+        config.n_scenes,
+        config.views_per_scene,
+        TRAIN_SEED_BASE,
+        config.robi_fraction,
+        materials=config.materials,
     )
     ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
-    val_spec = RenderSpec(
-        config.val_scenes, config.views_per_scene, VAL_SEED_BASE, config.robi_fraction
-    )
+    val_spec = dataclasses.replace(spec, n_scenes=config.val_scenes, seed_base=VAL_SEED_BASE)
     val = render_training_set(catalog_dir, val_spec, data_dir, config.workers, "render val")
     render_minutes = (time.time() - t_render) / 60
-    nets = _Nets(len(catalog), config)
+    n_classes = 1 if config.agnostic else len(catalog)
+    if config.agnostic:  # every instance is of the one class (the rows are in memory)
+        ts.instances[:, 2] = 1.0
+        val.instances[:, 2] = 1.0
+    nets = _Nets(n_classes, config)
     step, cpu_seconds, wall_seconds, curve = 0, 0.0, 0.0, []
     # what a fine-tune started from, so that its learning curve can continue the base's
     lineage = None
@@ -663,7 +692,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     while step < total and time.time() < deadline:
         rng = np.random.default_rng([config.seed, step])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        det_b = detector_batch(ts, view_rows, len(catalog), batch_config, rng)
+        det_b = detector_batch(ts, view_rows, n_classes, batch_config, rng)
         crop_b = crop_batch(ts, batch_config, rng, candidates)
         losses.append(nets.step(det_b, crop_b, config.schedule(step), gen))
         step += 1

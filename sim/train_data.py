@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from posefuse.estimator.core.objects import Catalog, load_catalog
 from posefuse.estimator.rotation.render import Renderer
-from posefuse.sim.materials import part_material
+from posefuse.sim.materials import part_material, random_material
 from posefuse.sim.scenes import PROFILES, REALSENSE_1280x720, make_scene
 from posefuse.sim.sensor import SensorModel, apply_rgb
 from posefuse.sim.synth import BIN_ID, scene_seed
@@ -66,12 +66,20 @@ class RenderSpec:
     seed_base: int
     robi_fraction: float = 0.5
     small_scale: float = 0.5
+    # "catalog": each part as it will be seen (``part_material``); "random": a material drawn
+    # per part type and scene (``random_material``), for the shape family's generalist
+    materials: str = "catalog"
+
+    def __post_init__(self):
+        if self.materials not in ("catalog", "random"):
+            raise ValueError(f"materials must be 'catalog' or 'random', got {self.materials!r}")
 
     def key(self) -> str:
-        return (
+        key = (
             f"s{self.n_scenes}_v{self.views}_b{self.seed_base}_r{self.robi_fraction:g}"
             f"_x{self.small_scale:g}"
         )
+        return key if self.materials == "catalog" else key + f"_m{self.materials}"
 
 
 def profile_of(scene_index: int, robi_fraction: float) -> str:
@@ -100,14 +108,26 @@ def _cached_catalog(catalog_dir: str) -> Catalog:
     return _CATALOGS[catalog_dir]
 
 
-def _scene_renderer(catalog_dir: str, scene_index: int, views: int, seed_base: int, profile: str):
+def _scene_renderer(
+    catalog_dir: str,
+    scene_index: int,
+    views: int,
+    seed_base: int,
+    profile: str,
+    materials_kind: str = "catalog",
+):
     catalog = _cached_catalog(catalog_dir)
     seed = scene_seed(seed_base, scene_index)
     spec = dataclasses.replace(PROFILES[profile], n_views=views)
     scene = make_scene(catalog, spec, seed, FULL)
     if len(scene.instances) > 254:
         raise ValueError(f"scene {scene_index}: {len(scene.instances)} instances exceed uint8")
-    materials = [part_material(catalog[i.obj_id]) for i in scene.instances]
+    if materials_kind == "random":  # one draw per part type in this scene, from its own stream
+        mat_rng = np.random.default_rng([seed, 2])
+        drawn = {k: random_material(mat_rng) for k in sorted({i.obj_id for i in scene.instances})}
+        materials = [drawn[i.obj_id] for i in scene.instances]
+    else:
+        materials = [part_material(catalog[i.obj_id]) for i in scene.instances]
     meshes = [catalog[i.obj_id].mesh for i in scene.instances] + [scene.bin_mesh]
     poses = [i.T_world_obj for i in scene.instances] + [np.eye(4)]
     ids = list(range(len(scene.instances))) + [BIN_ID]
@@ -159,9 +179,10 @@ def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, 
     """One scene's views as (rgb (720, 1280, 3) uint8, instance map (720, 1280) uint8, small
     rgb (Hs, Ws, 3) uint8, instance rows (K, 10): the columns of ``INSTANCE_COLUMNS`` but the
     view). The picklable unit of parallel rendering."""
-    catalog_dir, scene_index, views, seed_base, profile, small_scale = args
+    catalog_dir, scene_index, views, seed_base, profile, small_scale = args[:6]
+    materials_kind = args[6] if len(args) > 6 else "catalog"
     catalog, scene, renderer, seed = _scene_renderer(
-        catalog_dir, scene_index, views, seed_base, profile
+        catalog_dir, scene_index, views, seed_base, profile, materials_kind
     )
     rng = np.random.default_rng(seed + 1)
     sw, sh = round(FULL.width * small_scale), round(FULL.height * small_scale)
@@ -253,6 +274,7 @@ def render_training_set(
             spec.seed_base,
             profile_of(k, spec.robi_fraction),
             spec.small_scale,
+            spec.materials,
         )
         for k in todo
     ]

@@ -59,6 +59,10 @@ class UnsupportedImage(PosefuseError, ValueError):
         super().__init__(message)
 
 
+# the one class of a generalist model: its detections are "a part" of no catalog (obj_id 0)
+AGNOSTIC_CLASSES = ((0, "part"),)
+
+
 def catalog_hash(catalog) -> str:
     """A hash of the catalog's classes and meshes (what a model was trained on)."""
     h = hashlib.sha256()
@@ -106,6 +110,9 @@ class ModelCard:
     # (see estimator.frontend.two_stage); "center_voting": one network over the whole frame
     kind: str = "center_voting"
     two_stage: dict | None = None  # TwoStageConfig fields and "crop_model"
+    # a generalist: one class, "a part" (``AGNOSTIC_CLASSES``), for any catalog; trained on the
+    # shape family to find parts it has never seen, and the start of every onboarding
+    agnostic: bool = False
 
     def to_json(self) -> dict:
         return {
@@ -123,6 +130,7 @@ class ModelCard:
             ),
             "kind": self.kind,
             **({"two_stage": self.two_stage} if self.two_stage else {}),
+            **({"agnostic": True} if self.agnostic else {}),
             **(self.extra or {}),
         }
 
@@ -140,6 +148,7 @@ class ModelCard:
                 "center_cov_by_score",
                 "kind",
                 "two_stage",
+                "agnostic",
             }
             kind = str(data.get("kind", "center_voting"))
             if kind not in ("center_voting", "two_stage"):
@@ -160,6 +169,7 @@ class ModelCard:
                 extra={k: v for k, v in data.items() if k not in known},
                 kind=kind,
                 two_stage=dict(two_stage) if kind == "two_stage" else None,
+                agnostic=bool(data.get("agnostic", False)),
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise ModelError(path, f"model card is malformed ({exc!r})") from None
@@ -241,7 +251,9 @@ class NetworkFrontend:
         self.model_path = Path(model_path)
         self.card = load_card(self.model_path)
         classes = tuple((k, m.name) for k, m in sorted(catalog.items()))
-        if self.card.classes != classes or self.card.catalog_hash != catalog_hash(catalog):
+        if not self.card.agnostic and (
+            self.card.classes != classes or self.card.catalog_hash != catalog_hash(catalog)
+        ):
             raise ModelError(
                 self.model_path,
                 f"trained for classes {list(self.card.classes)} (catalog "
