@@ -303,9 +303,8 @@ def ring(rng: np.random.Generator) -> mf.Manifold:
     )
     solid = section.translate([major, 0]).revolve(SEG)
     if rng.random() < 0.4:  # stretched into a link
-        half = solid.scale([1.0, 1.0, 1.0])
-        solid = half.split_by_plane([1, 0, 0], 0.0)[0].translate([major * 0.6, 0, 0]) + (
-            half.split_by_plane([-1, 0, 0], 0.0)[0].translate([-major * 0.6, 0, 0])
+        solid = solid.split_by_plane([1, 0, 0], 0.0)[0].translate([major * 0.6, 0, 0]) + (
+            solid.split_by_plane([-1, 0, 0], 0.0)[0].translate([-major * 0.6, 0, 0])
         )
         bar = _rot_y(_cyl(major * 1.2, minor * 0.98, 24, True))
         solid = solid + bar.translate([0, major, 0]) + bar.translate([0, -major, 0])
