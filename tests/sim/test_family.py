@@ -118,3 +118,28 @@ def test_a_generalist_says_a_part_for_any_catalog_and_onboarding_starts_every_cl
     for c in range(3):
         assert torch.equal(w[c], state["nets"]["det"]["heatmap.weight"][0])
     assert json.loads((tmp_path / "g.json").read_text())["agnostic"] is True
+
+
+def test_catalog_family_writes_the_shapes_and_their_picture_and_refuses_bad_counts(
+    tmp_path, capsys
+):
+    import cv2
+
+    from posefuse.cli.main import main
+    from posefuse.estimator.core.objects import load_catalog
+
+    out = tmp_path / "fam"
+    assert main(["catalog", "--family", "7", "--family-seed", "3", "--out", str(out)]) == 0
+    catalog = load_catalog(out)
+    assert [catalog[k].name for k in sorted(catalog)][:5] == [n for n, _ in PARTS]
+    assert catalog[7].name == "fastener_3_0001"
+    picture = cv2.imread(str(out / "family.png"))
+    assert picture is not None and picture.shape[0] > 100 and picture.std() > 5
+    for argv, message in (
+        (["--family", "0"], "--family: 0: must be at least 1"),
+        (["--family", "3", "--mesh", "x.stl"], "--family and --mesh"),
+    ):
+        capsys.readouterr()
+        assert main(["catalog", "--out", str(tmp_path / "bad"), *argv]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
