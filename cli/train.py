@@ -35,6 +35,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for root in args.tune:
         if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
+    if args.width < 1:
+        raise PosefuseError(f"--width: {args.width}: must be at least 1")
     if args.crop_width is not None and args.crop_width < 1:
         raise PosefuseError(f"--crop-width: {args.crop_width}: must be at least 1")
     if args.vote_loss is not None and args.vote_loss < 0:
@@ -50,6 +52,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         batch=args.batch,
         crop_batch=args.crop_batch,
         lr=args.lr,
+        width=args.width,
         crop_width=args.crop_width,
         crop_box_channel=args.box_channel,
         dihedral=args.dihedral,
@@ -107,6 +110,13 @@ def register(subparsers) -> None:
     p.add_argument("--batch", type=int, default=16, help="detector crops per step")
     p.add_argument(
         "--lr", type=float, default=2e-3, help="peak learning rate of the schedule (AdamW)"
+    )
+    p.add_argument(
+        "--width",
+        type=int,
+        default=16,
+        help="stage one's width (the detector's backbone; stage two's too unless --crop-width); "
+        "a resume or an --init keeps its checkpoint's",
     )
     p.add_argument(
         "--crop-width",

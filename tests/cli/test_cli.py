@@ -242,3 +242,11 @@ def test_train_rejects_zero_threads_before_any_work(tmp_path, capsys):
     assert code == 2
     assert "--threads: 0: must be at least 1" in capsys.readouterr().err
     assert not out.exists() and not any(tmp_path.iterdir())
+
+
+def test_train_rejects_zero_width_before_any_work(tmp_path, capsys):
+    out = tmp_path / "m.onnx"
+    code = main(["train", "--out", str(out), "--width", "0", "--data-dir", str(tmp_path)])
+    assert code == 2
+    assert "--width: 0: must be at least 1" in capsys.readouterr().err
+    assert not out.exists() and not any(tmp_path.iterdir())
