@@ -78,6 +78,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         )
     if args.scenes < 1 or args.views < 1:
         raise PosefuseError("--scenes and --views must be at least 1")
+    if args.workers < 1:
+        raise PosefuseError(f"--workers: {args.workers}: must be at least 1")
     profile = PROFILES[args.profile]
     lo, hi = args.instances or profile.n_instances
     if not 1 <= lo <= hi:
@@ -97,7 +99,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
         obj_ids=obj_ids,
     )
     start = time.perf_counter()
-    generate_dataset(catalog, args.out, config, show_progress=not args.quiet)
+    generate_dataset(catalog, args.out, config, show_progress=not args.quiet, workers=args.workers)
     elapsed = time.perf_counter() - start
     print(f"wrote {args.scenes} scenes x {args.views} views to {args.out} in {elapsed:.1f} s")
     return 0
@@ -207,6 +209,12 @@ def register(subparsers) -> None:
         nargs="+",
         metavar="ID",
         help="only these objects of the catalog (default: all of them)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes rendering scenes, one scene each (the files are the same)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_synth)

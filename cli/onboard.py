@@ -40,6 +40,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         symmetry=_parse_symmetry(args.symmetry),
         views=args.views,
         held_scenes=args.held_scenes,
+        held_instances=args.held_instances,
         held_views=args.held_views,
         workers=args.workers,
         seed=args.seed,
@@ -63,14 +64,19 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
     return 0
 
 
+DEMO_SCENES = 3  # of the held-out mixed bins, in DIR/demo.mcap
+
+
 def _write_demo(out: Path) -> None:
-    """DIR/demo.mcap: the held-out mixed bins as a camera publishes them, for ``demo --parts``."""
+    """DIR/demo.mcap: the first held-out mixed bins as a camera publishes them, for ``demo
+    --parts``."""
     # lazy: the recorder and the dataset load mcap, scipy, trimesh and cv2 (~0.6 s)
     from posefuse.clients.demo import make_recording
     from posefuse.evaluation.dataset import load_dataset
 
     dataset = load_dataset(out / "validation" / "mixed")
-    make_recording(dataset, dataset.scene_ids, out / "demo.mcap", catalog=dataset.catalog)
+    scenes = dataset.scene_ids[:DEMO_SCENES]
+    make_recording(dataset, scenes, out / "demo.mcap", catalog=dataset.catalog)
 
 
 def register(subparsers) -> None:
@@ -98,7 +104,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--minutes",
         type=float,
-        default=60.0,
+        default=15.0,
         help="budget of the whole command; training gets what the other stages leave",
     )
     p.add_argument(
@@ -132,7 +138,18 @@ def register(subparsers) -> None:
     )
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(
-        "--held-scenes", type=int, default=2, help="held-out validation scenes per profile"
+        "--held-instances",
+        type=int,
+        default=100,
+        help="validation: render held-out scenes of each profile until this many parts are "
+        "scored (more than 75%% visible) at 4 and at 8 views",
+    )
+    p.add_argument(
+        "--held-scenes",
+        type=int,
+        default=None,
+        help="validation: this many held-out scenes per profile instead (default: as many as "
+        "--held-instances needs)",
     )
     p.add_argument("--held-views", type=int, default=8, help="views per validation scene")
     p.add_argument("--workers", type=int, default=2, help="processes for rendering and templates")

@@ -40,16 +40,26 @@ from posefuse.evaluation.eval_points import with_eval_points
 MANIFEST = "parts.json"
 MANIFEST_VERSION = 1
 VALIDATION_SEED = 880_000  # held-out renders: disjoint from training (sim.train) and test seeds
+# scored parts (visib > 0.75) a validation scene gives at 4 or 8 views, a first guess of how
+# many scenes the validation renders: the five meshes of ../shared/objects gave 7.3 (mixed) and
+# 11 (robi) at 8 views; a part set that gives fewer gets more scenes, up to MAX_HELD_SCENES
+INSTANCES_PER_SCENE = {"mixed": 6.0, "robi": 10.0}
+MAX_HELD_SCENES = 40
+# the network and the estimator on a validation view, besides its render
+VALIDATION_S_PER_VIEW = 0.5
 
 
 @dataclass(frozen=True)
 class OnboardConfig:
     units: str = "mm"
-    minutes: float = 60.0  # the whole command's budget
+    minutes: float = 15.0  # the whole command's budget
     symmetry: dict[str, str] = field(default_factory=dict)  # part name -> spec
     views: int = 6  # per training scene
     val_scenes: int = 4  # calibration renders of the training run
-    held_scenes: int = 2  # per profile, for the validation figures
+    # the validation renders, per profile: scenes until at least ``held_instances`` parts are
+    # scored (visib > 0.75) at each of 4 and 8 views, or ``held_scenes`` scenes when given
+    held_instances: int = 100
+    held_scenes: int | None = None
     held_views: int = 8
     workers: int = 2
     seed: int = 0
@@ -166,6 +176,11 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
             )
     elif config.minutes <= 0:
         raise PosefuseError(f"--minutes must be positive, got {config.minutes}")
+    if config.held_instances < 1 or (config.held_scenes is not None and config.held_scenes < 1):
+        raise PosefuseError(
+            f"--held-instances and --held-scenes must be at least 1, got {config.held_instances} "
+            f"and {config.held_scenes}"
+        )
     out = Path(out)
     stages = Stages(None if config.steps is not None else config.minutes * 60, echo)
 
@@ -280,7 +295,8 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
     per_view = (time.time() - t0) / 2 / max(config.workers, 1)
     left = stages.deadline - time.time()
     # validation: its renders, the network on them and the tracker, measured as ~3 s a view
-    reserve = 2 * config.held_scenes * config.held_views * (per_view * config.workers + 3.0)
+    # validation: its renders (in ``workers`` processes) and the network and the tracker on them
+    reserve = validation_views(config) * (per_view + VALIDATION_S_PER_VIEW)
     usable = left - reserve
     if usable < 30:
         raise PosefuseError(
@@ -312,24 +328,12 @@ def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) 
     from posefuse.evaluation.frontend_metrics import score_frontend
     from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
     from posefuse.evaluation.scores import evaluate
-    from posefuse.sim.scenes import PROFILES
-    from posefuse.sim.synth import SynthConfig, generate_dataset
 
     figures = {}
     for k, profile in enumerate(("mixed", "robi")):
         root = out / "validation" / profile
         seed = VALIDATION_SEED + config.seed * 10 + k
-        generate_dataset(
-            catalog,
-            root,
-            SynthConfig(
-                n_scenes=config.held_scenes,
-                seed=seed,
-                scene=_with_views(PROFILES[profile], config.held_views),
-                profile=profile,
-            ),
-            show_progress=False,
-        )
+        n_scenes, scored = render_validation(catalog, root, profile, seed, config)
         dataset = load_dataset(root)
         network = NetworkFrontend(model_path, dataset.catalog, seed=config.seed)
 
@@ -364,8 +368,9 @@ def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) 
         figures[profile] = {
             "dataset": f"validation/{profile}",
             "seed": seed,
-            "scenes": config.held_scenes,
+            "scenes": n_scenes,
             "views": config.held_views,
+            "scored_instances": scored,
             "frontend": {
                 "recall": score.recall,
                 "precision": score.precision,
@@ -376,10 +381,70 @@ def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) 
         }
         acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
         echo(
-            f"  {profile}: front end recall {score.recall:.3f}, precision {score.precision:.3f}; "
-            f"{acc}"
+            f"  {profile} ({n_scenes} scenes, {scored.get('8', min(scored.values()))} parts "
+            f"scored at 8 views): front end recall {score.recall:.3f}, precision "
+            f"{score.precision:.3f}; {acc}"
         )
     return figures
+
+
+def validation_views(config) -> int:
+    """How many views the validation is expected to render, both profiles together."""
+    if config.held_scenes is not None:
+        return 2 * config.held_scenes * config.held_views
+    return sum(
+        min(int(np.ceil(config.held_instances / guess)), MAX_HELD_SCENES) * config.held_views
+        for guess in INSTANCES_PER_SCENE.values()
+    )
+
+
+def scored_instances(root: Path, scene_ids, checkpoints: tuple[int, ...]) -> dict[int, int]:
+    """Parts scored (visib > 0.75, as ``evaluation.scores``) in the ``count``-th view of the
+    scenes ``scene_ids`` of a rendered dataset, per count of ``checkpoints``."""
+    counts = dict.fromkeys(checkpoints, 0)
+    for scene_id in scene_ids:
+        info = json.loads((root / "test" / f"{scene_id:06d}" / "scene_gt_info.json").read_text())
+        im_ids = sorted(info, key=int)
+        for n in checkpoints:
+            counts[n] += sum(g["visib_fract"] > 0.75 for g in info[im_ids[n - 1]])
+    return counts
+
+
+def render_validation(
+    catalog: Catalog, root: Path, profile: str, seed: int, config
+) -> tuple[int, dict[str, int]]:
+    """Render a profile's validation scenes into ``root``: ``config.held_scenes`` of them, or
+    rounds of scenes until ``held_instances`` parts are scored at 4 and at 8 views (each round
+    sized from the scenes so far), at most MAX_HELD_SCENES. Returns the scenes and the scored
+    parts per count of views."""
+    from posefuse.sim.scenes import PROFILES
+    from posefuse.sim.synth import SynthConfig, generate_dataset, write_synth_json
+
+    spec = _with_views(PROFILES[profile], config.held_views)
+    checkpoints = tuple(n for n in (4, 8) if n <= config.held_views) or (config.held_views,)
+    done, counts = 0, dict.fromkeys(checkpoints, 0)
+    target = config.held_instances
+    while True:
+        if config.held_scenes is not None:
+            n = config.held_scenes - done
+        else:
+            per_scene = (
+                min(counts.values()) / done if done else INSTANCES_PER_SCENE.get(profile, 6.0)
+            )
+            missing = target - min(counts.values())
+            n = int(np.ceil(missing / max(per_scene, 0.5)))
+        n = min(n, MAX_HELD_SCENES - done)
+        if n <= 0:
+            break
+        part = SynthConfig(n_scenes=n, seed=seed, first_scene_id=done, scene=spec, profile=profile)
+        generate_dataset(catalog, root, part, show_progress=False, workers=config.workers)
+        for c, m in scored_instances(root, range(done, done + n), checkpoints).items():
+            counts[c] += m
+        done += n
+        if config.held_scenes is not None or min(counts.values()) >= target:
+            break
+    write_synth_json(root, SynthConfig(n_scenes=done, seed=seed, scene=spec, profile=profile))
+    return done, {str(c): m for c, m in counts.items()}
 
 
 def _with_views(spec, n_views: int):

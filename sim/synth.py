@@ -77,13 +77,44 @@ def _part_material(catalog: Catalog, obj_id: int):
 
 
 def generate_dataset(
-    catalog: Catalog, out: str | Path, config: SynthConfig, show_progress: bool = True
+    catalog: Catalog,
+    out: str | Path,
+    config: SynthConfig,
+    show_progress: bool = True,
+    workers: int = 1,
 ) -> Path:
-    """Write ``config.n_scenes`` scenes of ``config.scene.n_views`` views to ``out`` (BOP)."""
+    """Write ``config.n_scenes`` scenes of ``config.scene.n_views`` views to ``out`` (BOP).
+
+    ``workers`` > 1 renders scenes in that many processes, one scene each; every scene is a
+    function of its own seed, so the files are the same as one process writes."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
     out = Path(out)
     write_dataset_header(out, config.camera, catalog)
+    write_synth_json(out, config)
+    scene_ids = [config.first_scene_id + k for k in range(config.n_scenes)]
+    total = config.n_scenes * config.scene.n_views
+    with tqdm(total=total, desc="synth", unit="view", disable=not show_progress) as bar:
+        if workers == 1 or len(scene_ids) == 1:
+            for scene_id in scene_ids:
+                render_dataset_scene(catalog, out, config, scene_id, bar.update)
+            return out
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
+
+        # spawned, not forked: the caller may hold onnxruntime's or torch's threads
+        with ProcessPoolExecutor(min(workers, len(scene_ids)), get_context("spawn")) as pool:
+            jobs = [pool.submit(render_dataset_scene, catalog, out, config, s) for s in scene_ids]
+            for job in jobs:
+                job.result()
+                bar.update(config.scene.n_views)
+    return out
+
+
+def write_synth_json(out: Path, config: SynthConfig) -> None:
+    """``synth.json``: how a dataset was rendered (its profile, seed and scenes)."""
     spec = config.scene
-    (out / "synth.json").write_text(
+    (Path(out) / "synth.json").write_text(
         json.dumps(
             {
                 "profile": config.profile,
@@ -100,14 +131,20 @@ def generate_dataset(
         )
         + "\n"
     )
-    total = config.n_scenes * config.scene.n_views
-    with tqdm(total=total, desc="synth", unit="view", disable=not show_progress) as bar:
-        for k in range(config.n_scenes):
-            scene_id = config.first_scene_id + k
-            seed = scene_seed(config.seed, scene_id)
-            obj_ids = list(config.obj_ids) if config.obj_ids else None
-            scene = make_scene(catalog, config.scene, seed, config.camera, obj_ids)
-            writer = SceneWriter(out / config.split, scene_id)
-            render_scene_views(catalog, scene, writer, config.sensor, seed + 1, bar.update)
-            writer.close()
-    return out
+
+
+def render_dataset_scene(
+    catalog: Catalog,
+    out: Path,
+    config: SynthConfig,
+    scene_id: int,
+    progress: Callable[[], None] | None = None,
+) -> None:
+    """Render and write one scene of a dataset (``generate_dataset``): its layout and its views
+    from ``scene_seed(config.seed, scene_id)`` alone."""
+    seed = scene_seed(config.seed, scene_id)
+    obj_ids = list(config.obj_ids) if config.obj_ids else None
+    scene = make_scene(catalog, config.scene, seed, config.camera, obj_ids)
+    writer = SceneWriter(out / config.split, scene_id)
+    render_scene_views(catalog, scene, writer, config.sensor, seed + 1, progress)
+    writer.close()

@@ -203,3 +203,48 @@ def test_extra_onboard_the_real_bracket(tmp_path, capsys, monkeypatch):
         found_within_d=0.5,
         add_sym_below_d=None,
     )
+
+
+def _fake_scenes(per_scene: list[int]):
+    """A stand-in for generate_dataset that writes scene k's scene_gt_info.json with
+    ``per_scene[k]`` parts more than 75% visible in every view (and one barely visible)."""
+    calls = []
+
+    def generate(catalog, root, config, show_progress=True, workers=1):
+        calls.append((config.first_scene_id, config.n_scenes))
+        for scene_id in range(config.first_scene_id, config.first_scene_id + config.n_scenes):
+            folder = Path(root) / "test" / f"{scene_id:06d}"
+            folder.mkdir(parents=True, exist_ok=True)
+            parts = [{"visib_fract": 0.9}] * per_scene[scene_id] + [{"visib_fract": 0.2}]
+            info = {str(im): parts for im in range(config.scene.n_views)}
+            (folder / "scene_gt_info.json").write_text(json.dumps(info))
+        return Path(root)
+
+    return generate, calls
+
+
+def test_validation_renders_scenes_until_enough_parts_are_scored(tmp_path, monkeypatch):
+    from posefuse.sim import onboard, synth
+
+    generate, calls = _fake_scenes([3] * 10 + [30] * 30)
+    monkeypatch.setattr(synth, "generate_dataset", generate)
+    config = onboard.OnboardConfig(held_instances=40)
+    n, scored = onboard.render_validation(None, tmp_path / "v", "mixed", 7, config)
+    # a first round from the guess (40 / 6: 7 scenes, 21 parts), then one sized from what the
+    # scenes gave (3 a scene: 19 / 3, 7 more), then the rest
+    assert calls[:2] == [(0, 7), (7, 7)]
+    assert scored["4"] == scored["8"] >= 40 and n == sum(c[1] for c in calls)
+    synth_json = json.loads((tmp_path / "v" / "synth.json").read_text())
+    assert synth_json["n_scenes"] == n and synth_json["seed"] == 7
+    # a part set whose scenes score nothing stops at the cap
+    generate, calls = _fake_scenes([0] * 100)
+    monkeypatch.setattr(synth, "generate_dataset", generate)
+    n, scored = onboard.render_validation(None, tmp_path / "w", "robi", 7, config)
+    assert n == onboard.MAX_HELD_SCENES and scored["8"] == 0
+    # --held-scenes: exactly that many
+    generate, calls = _fake_scenes([0] * 5)
+    monkeypatch.setattr(synth, "generate_dataset", generate)
+    n, _ = onboard.render_validation(
+        None, tmp_path / "x", "mixed", 7, onboard.OnboardConfig(held_scenes=2)
+    )
+    assert n == 2 and calls == [(0, 2)]

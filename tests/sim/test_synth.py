@@ -169,3 +169,15 @@ def test_robi_profile_piles_one_part_type_and_sweeps_over_the_bin(robi_catalog, 
     assert np.all(np.diff(along) > 0) or np.all(np.diff(along) < 0)
     with pytest.raises(ValueError, match="view_pattern"):
         dataclasses.replace(spec, view_pattern="spiral")
+
+
+def test_scenes_rendered_in_processes_are_the_same_bytes(tmp_path, catalog):
+    config = SynthConfig(
+        n_scenes=3, seed=8, camera=SMALL_CAMERA, scene=SceneSpec(n_instances=(3, 4), n_views=2)
+    )
+    one = generate_dataset(catalog, tmp_path / "one", config, show_progress=False)
+    two = generate_dataset(catalog, tmp_path / "two", config, show_progress=False, workers=2)
+    assert _digest(one) == _digest(two)
+    assert len(list((two / "test").iterdir())) == 3
+    with pytest.raises(ValueError, match="workers must be at least 1"):
+        generate_dataset(catalog, tmp_path / "x", config, workers=0)
