@@ -47,6 +47,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         steps=args.steps,
         train_scenes=args.train_scenes,
         init=None if args.from_scratch else (args.init or "shipped"),
+        photometric=args.photometric,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -135,6 +136,12 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--from-scratch", action="store_true", help="train the front end from random weights"
+    )
+    p.add_argument(
+        "--photometric",
+        action="store_true",
+        help="train with a real camera's exposure, white balance, blur, noise and JPEG drawn "
+        "per sample (for real photographs)",
     )
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(

@@ -56,6 +56,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         crop_width=args.crop_width,
         crop_box_channel=args.box_channel,
         dihedral=args.dihedral,
+        photometric=args.photometric,
         seed=args.seed,
         workers=args.workers,
         threads=args.threads,
@@ -137,6 +138,12 @@ def register(subparsers) -> None:
         action="store_true",
         help="augment with upside-down flips (both stages) and transposes (stage two) besides "
         "mirrors; kept in the checkpoint",
+    )
+    p.add_argument(
+        "--photometric",
+        action="store_true",
+        help="draw a real camera's exposure, white balance, tone curve, blur, noise and JPEG "
+        "per training sample (sim.photometric); kept in the checkpoint",
     )
     p.add_argument(
         "--vote-loss",

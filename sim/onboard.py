@@ -72,6 +72,7 @@ class OnboardConfig:
     # backbone and stage two are shared by every part; only the class heatmaps are new);
     # None trains from scratch
     init: str | None = "shipped"
+    photometric: bool = False  # a real camera's effects drawn per training sample (sim.photometric)
 
 
 class Stages:
@@ -285,6 +286,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 robi_fraction=config.robi_fraction,
                 deadline=None,
                 init=init,
+                photometric=config.photometric,
             ),
         )
     from posefuse.sim.train import TRAIN_SEED_BASE, profile_of, render_scene
@@ -316,6 +318,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         robi_fraction=config.robi_fraction,
         deadline=stages.deadline - reserve,
         init=init,
+        photometric=config.photometric,
     )
     return train(catalog_dir, model_path, train_config)
 

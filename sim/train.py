@@ -47,6 +47,7 @@ from posefuse.estimator.frontend.network import (
 )
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import score_frontend
+from posefuse.sim.photometric import Photometric
 from posefuse.sim.scenes import REALSENSE_1280x720
 from posefuse.sim.train_data import (
     RenderSpec,
@@ -98,6 +99,8 @@ class TrainConfig:
     # shape family (``posefuse catalog --family``), which onboarding starts from
     agnostic: bool = False
     materials: str = "catalog"  # or "random": see sim.train_data.RenderSpec
+    # a real camera's effects drawn per training sample (sim.photometric); kept in the checkpoint
+    photometric: bool = False
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -168,6 +171,7 @@ _STREAM_FIELDS = (
     "restarts",
     "agnostic",
     "materials",
+    "photometric",
 )
 
 
@@ -549,13 +553,15 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
                 if k in _STREAM_FIELDS
-                and k not in ("restarts", "crop_box_channel", "dihedral", "crop_width")
+                and k
+                not in ("restarts", "crop_box_channel", "dihedral", "crop_width", "photometric")
             },
             crop_width=stored.get("crop_width"),
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
             crop_box_channel=bool(stored.get("crop_box_channel", False)),
             # a checkpoint older than the option was trained without it
             dihedral=bool(stored.get("dihedral", False)),
+            photometric=bool(stored.get("photometric", False)),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -628,6 +634,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         crop_size=config.crop_size,
         box_channel=config.crop_box_channel,
         dihedral=config.dihedral,
+        photometric=Photometric() if config.photometric else None,
     )
     start = time.time()
     deadline = start + config.minutes * 60
@@ -740,6 +747,9 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "seed": config.seed,
             "bf16_autocast": config.bf16,
             "proxy_voting_loss_weight": config.vote_loss or 0.0,
+            "augmentation": "mirrors"
+            + (", flips and transposes" if config.dihedral else "")
+            + (", a camera's photometric effects (sim.photometric)" if config.photometric else ""),
             "initialised_from": config.init or (lineage or {}).get("checkpoint"),
             # this run's hours and those of every checkpoint it was fine-tuned from
             "cumulative_cpu_hours": round((cpu_seconds + _lineage_cpu(lineage)) / 3600, 3),

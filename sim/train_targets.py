@@ -11,6 +11,8 @@ so a resumed run sees exactly the stream an uninterrupted one would have.
   cut out of the full-resolution view and resized to the crop size (the same warp as the
   front end's), with the instance's own pixels as the object label and unit vectors towards
   its projected model origin.
+- Both, with ``photometric``: a real camera's exposure, white balance, tone curve, blur, noise
+  and JPEG drawn per sample (``sim.photometric``).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import cv2
 import numpy as np
 
 from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
+from posefuse.sim.photometric import Photometric, photometric
 
 DET_STRIDE = 4
 CROP_STRIDE = 4
@@ -44,6 +47,8 @@ class BatchConfig:
     # also flip upside down (both stages) and transpose (stage two's square crops), each half
     # the time: a bin seen with the camera rolled by 90 or 180 degrees is as plausible a bin
     dihedral: bool = False
+    # a real camera's effects drawn per sample (sim.photometric), None: the renders as they are
+    photometric: Photometric | None = None
 
 
 def det_targets(
@@ -150,6 +155,8 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
         if config.dihedral and rng.random() < 0.5:  # and so is one upside down
             sample = flip_detector_sample(*sample, axis=0)
         image, heat, weight, box, box_mask = sample
+        if config.photometric is not None:
+            image = photometric(np.ascontiguousarray(image), rng, config.photometric)
         for lst, a in zip(out, (image, heat, weight, box, box_mask), strict=True):
             lst.append(np.ascontiguousarray(a))
     return tuple(np.stack(a) for a in out)
@@ -249,6 +256,8 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
             )
         if config.dihedral:
             crop, mask, label, vec = dihedral_crop(crop, mask, label, vec, rng)
+        if config.photometric is not None:
+            crop = photometric(np.ascontiguousarray(crop), rng, config.photometric)
         crops.append(np.ascontiguousarray(crop))
         masks.append(np.ascontiguousarray(mask))
         labels.append(np.ascontiguousarray(label))
