@@ -35,6 +35,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for root in args.tune:
         if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
+    if not 0.1 <= args.input_scale <= 1.0:
+        raise PosefuseError(f"--input-scale: {args.input_scale}: must be in [0.1, 1]")
     if args.width < 1:
         raise PosefuseError(f"--width: {args.width}: must be at least 1")
     if args.crop_width is not None and args.crop_width < 1:
@@ -53,6 +55,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         crop_batch=args.crop_batch,
         lr=args.lr,
         width=args.width,
+        input_scale=args.input_scale,
         crop_width=args.crop_width,
         crop_box_channel=args.box_channel,
         dihedral=args.dihedral,
@@ -118,6 +121,14 @@ def register(subparsers) -> None:
         default=16,
         help="stage one's width (the detector's backbone; stage two's too unless --crop-width); "
         "a resume or an --init keeps its checkpoint's",
+    )
+    p.add_argument(
+        "--input-scale",
+        type=float,
+        default=0.5,
+        help="stage one's input: the 1280x720 view resized by this; a training set rendered for "
+        "another scale is resized from its full views, not rendered again; a resume or an "
+        "--init keeps its checkpoint's",
     )
     p.add_argument(
         "--crop-width",

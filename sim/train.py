@@ -89,6 +89,7 @@ class TrainConfig:
     lr: float = 2e-3
     warmup: int = 500
     width: int = 16
+    input_scale: float = INPUT_SCALE  # stage one's input: the 1280x720 view resized by this
     crop_width: int | None = None  # stage two's width (None: ``width``)
     crop_box_channel: bool = False  # stage two gets the box as a fourth input channel
     dihedral: bool = False  # flips upside down and transposes besides mirrors (train_targets)
@@ -163,6 +164,7 @@ _STREAM_FIELDS = (
     "lr",
     "warmup",
     "width",
+    "input_scale",
     "crop_width",
     "crop_box_channel",
     "dihedral",
@@ -172,6 +174,17 @@ _STREAM_FIELDS = (
     "agnostic",
     "materials",
     "photometric",
+)
+
+
+# stream fields a checkpoint older than them lacks: read with the value they had before
+_OPTIONAL_STREAM_FIELDS = (
+    "restarts",
+    "crop_box_channel",
+    "dihedral",
+    "crop_width",
+    "photometric",
+    "input_scale",
 )
 
 
@@ -443,7 +456,7 @@ def _card(
         agnostic=config.agnostic,
         catalog_hash=catalog_hash(catalog),
         image_size=(REALSENSE_1280x720.width, REALSENSE_1280x720.height),
-        input_scale=INPUT_SCALE,
+        input_scale=config.input_scale,
         output_stride=DET_STRIDE,
         cov_scale=cov_scale,
         kind="two_stage",
@@ -552,9 +565,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             **{
                 k: (tuple(v) if isinstance(v, list) else v)
                 for k, v in stored.items()
-                if k in _STREAM_FIELDS
-                and k
-                not in ("restarts", "crop_box_channel", "dihedral", "crop_width", "photometric")
+                if k in _STREAM_FIELDS and k not in _OPTIONAL_STREAM_FIELDS
             },
             crop_width=stored.get("crop_width"),
             restarts=tuple(tuple(r) for r in stored.get("restarts", ())),
@@ -562,6 +573,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             # a checkpoint older than the option was trained without it
             dihedral=bool(stored.get("dihedral", False)),
             photometric=bool(stored.get("photometric", False)),
+            input_scale=float(stored.get("input_scale", INPUT_SCALE)),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -585,6 +597,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         config = dataclasses.replace(
             config,
             width=base_width,
+            input_scale=float(stored.get("input_scale", INPUT_SCALE)),
             crop_width=crop_width if crop_width != base_width else None,
             crop_box_channel=bool(stored.get("crop_box_channel")) or config.crop_box_channel,
         )
@@ -595,6 +608,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         config.views_per_scene,
         TRAIN_SEED_BASE,
         config.robi_fraction,
+        small_scale=config.input_scale,
         materials=config.materials,
     )
     ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")

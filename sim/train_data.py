@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -239,6 +241,55 @@ def open_training_set(folder: str | Path) -> TrainingSet:
     )
 
 
+def _same_views_at_another_scale(folder: Path, spec: RenderSpec) -> Path | None:
+    """A complete set beside ``folder`` rendered from the same spec but for another detector
+    input scale, or None."""
+    want = {k: v for k, v in dataclasses.asdict(spec).items() if k != "small_scale"}
+    prefix = folder.name.split("_", 1)[0]
+    for candidate in sorted(folder.parent.glob(f"{prefix}_*")):
+        meta_path = candidate / "meta.json"
+        if candidate == folder or not meta_path.is_file():
+            continue
+        stored = dict(json.loads(meta_path.read_text())["spec"])
+        stored.pop("small_scale", None)
+        if stored == want:
+            return candidate
+    return None
+
+
+def rescaled_training_set(
+    source: str | Path, folder: str | Path, small_scale: float, desc: str = "rescale"
+) -> TrainingSet:
+    """The training set of ``source`` for another detector input scale, in ``folder``: the same
+    full-resolution views, instance maps and rows (linked, not copied, where the file system
+    allows), and the detector's input resized from the full views as ``render_scene`` resizes
+    them, so the set is the one a rendering at that scale writes."""
+    src = open_training_set(source)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("full_rgb.u8", "full_inst.u8"):
+        target = folder / name
+        if not target.exists():
+            try:
+                os.link(src.folder / name, target)
+            except OSError:
+                shutil.copyfile(src.folder / name, target)
+    sw, sh = small_size(small_scale)
+    small_rgb = np.memmap(folder / "small_rgb.u8", np.uint8, "w+", shape=(src.n_views, sh, sw, 3))
+    w, h = round(FULL.width * small_scale), round(FULL.height * small_scale)
+    for k in tqdm(range(src.n_views), desc=desc, unit="view"):
+        small = cv2.resize(np.asarray(src.full_rgb[k]), (w, h), interpolation=cv2.INTER_AREA)
+        small_rgb[k] = cv2.copyMakeBorder(small, 0, sh - h, 0, sw - w, cv2.BORDER_REPLICATE)
+    small_rgb.flush()
+    np.save(folder / "instances.npy", src.instances)
+    meta = dict(src.meta)
+    meta["small_size"] = [sw, sh]
+    meta["spec"] = {**src.meta["spec"], "small_scale": small_scale}
+    meta["rescaled_from"] = str(src.folder)
+    (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return open_training_set(folder)
+
+
 def render_training_set(
     catalog_dir: str | Path, spec: RenderSpec, root: str | Path, workers: int = 2, desc="render"
 ) -> TrainingSet:
@@ -250,6 +301,9 @@ def render_training_set(
     folder = Path(root) / f"{catalog_hash(_cached_catalog(str(catalog_dir)))[:8]}_{spec.key()}"
     if (folder / "meta.json").is_file():
         return open_training_set(folder)
+    other = _same_views_at_another_scale(folder, spec)
+    if other is not None:
+        return rescaled_training_set(other, folder, spec.small_scale, desc)
     folder.mkdir(parents=True, exist_ok=True)
     n = spec.n_scenes * spec.views
     sw, sh = small_size(spec.small_scale)

@@ -305,3 +305,24 @@ def test_a_resume_keeps_the_vote_loss_unless_told_and_logs_it_either_way(tmp_pat
     assert card["training"]["proxy_voting_loss_weight"] == 0.0
     state = torch.load(off.with_suffix(".ckpt"), map_location="cpu", weights_only=False)
     assert state["config"]["vote_loss"] == 0.0 and state["curve"][-1]["loss"]["vote"] > 0
+
+
+def test_another_input_scale_is_the_cards_and_the_front_end_runs_at_it(tmp_path):
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.estimator.frontend.network import NetworkFrontend
+
+    out = tmp_path / "s" / "m.onnx"
+    card = train(DEFAULT_CATALOG, out, _config(tmp_path, input_scale=0.625, max_iterations=2))
+    assert card["input_scale"] == 0.625
+    _, state = _weights(out.with_suffix(".ckpt"))
+    assert state["config"]["input_scale"] == 0.625
+    frontend = NetworkFrontend(out, load_catalog(DEFAULT_CATALOG))
+    heat = frontend.infer(np.zeros((720, 1280, 3), np.uint8))
+    assert heat.shape[-2:] == (464 // 4, 800 // 4)
+    # a resume keeps the checkpoint's scale, whatever it is told
+    train(
+        DEFAULT_CATALOG,
+        out,
+        _config(tmp_path, resume=str(out.with_suffix(".ckpt")), extend=(1, 1e-3)),
+    )
+    assert _weights(out.with_suffix(".ckpt"))[1]["config"]["input_scale"] == 0.625
