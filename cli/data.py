@@ -31,7 +31,9 @@ def _cmd_catalog(args: argparse.Namespace) -> int:
             raise PosefuseError("--family and --mesh: give one or the other")
         if args.family < 1:
             raise PosefuseError(f"--family: {args.family}: must be at least 1")
-        catalog = Catalog(family_models(args.family, args.family_seed))
+        if not 130.0 <= args.family_max_mm <= 400.0:
+            raise PosefuseError(f"--family-max-mm: {args.family_max_mm}: must be in [130, 400]")
+        catalog = Catalog(family_models(args.family, args.family_seed, max_mm=args.family_max_mm))
         write_catalog(Path(args.out), catalog)
         from posefuse.sim.contact_sheet import write_family_sheet
 
@@ -168,6 +170,13 @@ def register(subparsers) -> None:
         type=int,
         default=1,
         help="seed of the drawn family shapes (tuning families take seeds of their own)",
+    )
+    p.add_argument(
+        "--family-max-mm",
+        type=float,
+        default=130.0,
+        help="the family's largest parts: above 130 mm, 30%% of the drawn shapes are scaled up "
+        "to a longest side log-uniform between 130 mm and this (at most 400)",
     )
     p.set_defaults(func=_cmd_catalog)
 

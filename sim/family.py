@@ -5,7 +5,10 @@ Each shape is drawn from one of the kinds that factories hold (turned parts, fas
 fittings, bent sheet brackets, gears, castings, plates with holes, flanges, rings), its
 dimensions and features drawn from a seeded generator, and built as a solid with manifold3d
 (extrusions, revolutions and booleans), so the mesh is watertight by construction. Sizes span
-real parts: the longest side is 20 to 130 mm. Meshes are in millimetres and bbox-centred, as
+real parts: the longest side is 20 to 130 mm by default; with a larger ``max_mm`` (up to 400) a
+share of the shapes (``LARGE_SHARE``) is scaled up to a longest side drawn log-uniformly between
+130 mm and ``max_mm``, for part sets that hold large parts (an eye bolt of 193 mm). Meshes are
+in millimetres and bbox-centred, as
 :mod:`sim.parts` builds the five catalog parts, which stay in the family (``family_shapes``
 lists them first).
 
@@ -324,9 +327,19 @@ KINDS: tuple[tuple[str, Callable[[np.random.Generator], mf.Manifold]], ...] = (
 )
 
 
-def family_shape(seed: int, index: int) -> tuple[str, trimesh.Trimesh]:
+MIN_MM, DEFAULT_MAX_MM = 20.0, 130.0
+LARGE_SHARE = 0.3  # of the shapes scaled up when max_mm is above DEFAULT_MAX_MM
+
+
+def family_shape(
+    seed: int, index: int, max_mm: float = DEFAULT_MAX_MM
+) -> tuple[str, trimesh.Trimesh]:
     """Shape ``index`` of the family of ``seed``: (name, mesh in mm, bbox-centred, watertight).
-    Its kind cycles through ``KINDS``; a draw that does not give a sound solid is drawn again."""
+    Its kind cycles through ``KINDS``; a draw that does not give a sound solid is drawn again.
+    With ``max_mm`` above DEFAULT_MAX_MM, a share of the shapes is scaled up (module docstring)
+    by a draw of its own stream, so the default family is unchanged."""
+    if not DEFAULT_MAX_MM <= max_mm <= 400.0:
+        raise ValueError(f"max_mm must be in [{DEFAULT_MAX_MM:g}, 400], got {max_mm}")
     kind, build = KINDS[index % len(KINDS)]
     rng = np.random.default_rng([seed, index])
     for _attempt in range(20):
@@ -337,34 +350,45 @@ def family_shape(seed: int, index: int) -> tuple[str, trimesh.Trimesh]:
         extent = float(mesh.extents.max())
         if not mesh.is_watertight or extent < 1.0:
             continue
-        if extent > 130.0 or extent < 20.0:  # into the size range of real parts
-            mesh.apply_scale(float(np.clip(extent, 20.0, 130.0)) / extent)
+        if extent > DEFAULT_MAX_MM or extent < MIN_MM:  # into the size range of real parts
+            mesh.apply_scale(float(np.clip(extent, MIN_MM, DEFAULT_MAX_MM)) / extent)
+        if max_mm > DEFAULT_MAX_MM:
+            size_rng = np.random.default_rng([seed, index, 1])
+            large, target = size_rng.random(), size_rng.uniform(0.0, 1.0)
+            if large < LARGE_SHARE:
+                target_mm = DEFAULT_MAX_MM * (max_mm / DEFAULT_MAX_MM) ** target
+                mesh.apply_scale(target_mm / float(mesh.extents.max()))
         return f"{kind}_{seed}_{index:04d}", mesh
     raise RuntimeError(f"family seed {seed}: shape {index} ({kind}) gave no sound solid")
 
 
 def family_shapes(
-    count: int, seed: int, with_catalog_parts: bool = True
+    count: int, seed: int, with_catalog_parts: bool = True, max_mm: float = DEFAULT_MAX_MM
 ) -> list[tuple[str, trimesh.Trimesh]]:
     """``count`` shapes: the five catalog parts first (``with_catalog_parts``), then drawn
-    shapes of ``seed``. Meshes in millimetres."""
+    shapes of ``seed`` (``family_shape``). Meshes in millimetres."""
     if count < 1:
         raise ValueError(f"count must be at least 1, got {count}")
+    if not DEFAULT_MAX_MM <= max_mm <= 400.0:
+        raise ValueError(f"max_mm must be in [{DEFAULT_MAX_MM:g}, 400], got {max_mm}")
     shapes = [(name, build_part(name)) for name, _ in PARTS][:count] if with_catalog_parts else []
     k = 0
     while len(shapes) < count:
-        shapes.append(family_shape(seed, k))
+        shapes.append(family_shape(seed, k, max_mm))
         k += 1
     return shapes
 
 
-def family_models(count: int, seed: int, with_catalog_parts: bool = True) -> list:
+def family_models(
+    count: int, seed: int, with_catalog_parts: bool = True, max_mm: float = DEFAULT_MAX_MM
+) -> list:
     """The family as object models (obj_ids 1..count, metres), symmetries not detected: a
     detector learns where parts are, not their poses."""
     from posefuse.estimator.core.objects import make_model
 
     models = []
-    for obj_id, (name, mesh) in enumerate(family_shapes(count, seed, with_catalog_parts), 1):
+    shapes = family_shapes(count, seed, with_catalog_parts, max_mm)
+    for obj_id, (name, mesh) in enumerate(shapes, 1):
         mesh.apply_scale(1e-3)
         models.append(make_model(obj_id, name, mesh, detect=False))
     return models

@@ -45,6 +45,7 @@ def test_catalog_folder_without_models_info(tmp_path, capsys):
         (["--scenes", "0"], "--scenes and --views must be at least 1"),
         (["--instances", "5", "2"], "--instances needs MIN MAX"),
         (["--intrinsics", "kinect"], "--intrinsics: unknown 'kinect'"),
+        (["--workers", "0"], "--workers: 0: must be at least 1"),
     ],
 )
 def test_synth_rejects_bad_arguments(tmp_path, capsys, args, message):

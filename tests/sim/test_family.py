@@ -39,6 +39,25 @@ def test_every_kind_gives_watertight_centred_solids_in_real_parts_sizes():
         assert mesh.volume > 0, name
 
 
+def test_a_larger_family_scales_some_shapes_up_and_leaves_the_others_as_they_were():
+    count = 30
+    default = family_shapes(count, seed=11, with_catalog_parts=False)
+    large = family_shapes(count, seed=11, with_catalog_parts=False, max_mm=200.0)
+    scaled = 0
+    for (name, a), (name_b, b) in zip(default, large, strict=True):
+        assert name == name_b and b.is_watertight
+        ratio = b.extents.max() / a.extents.max()
+        if np.isclose(ratio, 1.0):
+            assert np.array_equal(a.vertices, b.vertices), name
+        else:
+            scaled += 1
+            assert 130.0 - 1e-6 <= b.extents.max() <= 200.0 + 1e-6, (name, b.extents)
+            assert np.allclose(b.vertices / ratio, a.vertices), name  # the same shape, larger
+    assert 3 <= scaled <= 18  # LARGE_SHARE of 30, give or take the draw
+    with pytest.raises(ValueError, match="max_mm"):
+        family_shapes(1, seed=11, max_mm=100.0)
+
+
 def test_the_five_catalog_parts_stay_in_the_family_and_models_are_in_metres():
     models = family_models(7, seed=3)
     assert [m.name for m in models[:5]] == [n for n, _ in PARTS]
@@ -138,6 +157,7 @@ def test_catalog_family_writes_the_shapes_and_their_picture_and_refuses_bad_coun
     for argv, message in (
         (["--family", "0"], "--family: 0: must be at least 1"),
         (["--family", "3", "--mesh", "x.stl"], "--family and --mesh"),
+        (["--family", "3", "--family-max-mm", "90"], "--family-max-mm: 90.0: must be in"),
     ):
         capsys.readouterr()
         assert main(["catalog", "--out", str(tmp_path / "bad"), *argv]) == 2
