@@ -237,17 +237,17 @@ def test_http_port_zero_picks_a_free_port():
     assert settings.http_port > 0
 
 
-def test_train_rejects_zero_threads_before_any_work(tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--threads", "0"], "--threads: 0: must be at least 1"),
+        (["--width", "0"], "--width: 0: must be at least 1"),
+        (["--input-scale", "2"], "--input-scale: 2.0: must be in [0.1, 1]"),
+    ],
+)
+def test_train_rejects_bad_arguments_before_any_work(tmp_path, capsys, args, message):
     out = tmp_path / "m.onnx"
-    code = main(["train", "--out", str(out), "--threads", "0", "--data-dir", str(tmp_path)])
+    code = main(["train", "--out", str(out), *args, "--data-dir", str(tmp_path)])
     assert code == 2
-    assert "--threads: 0: must be at least 1" in capsys.readouterr().err
-    assert not out.exists() and not any(tmp_path.iterdir())
-
-
-def test_train_rejects_zero_width_before_any_work(tmp_path, capsys):
-    out = tmp_path / "m.onnx"
-    code = main(["train", "--out", str(out), "--width", "0", "--data-dir", str(tmp_path)])
-    assert code == 2
-    assert "--width: 0: must be at least 1" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
     assert not out.exists() and not any(tmp_path.iterdir())
