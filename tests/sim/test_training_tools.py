@@ -4,8 +4,9 @@ and bench.training_curve continues a fine-tune's curve from its base's."""
 
 import numpy as np
 
-from posefuse.bench.frontend_seen import score_view
+from posefuse.bench.frontend_seen import score_boxes, score_view
 from posefuse.estimator.frontend.detection import Detection
+from posefuse.estimator.frontend.two_stage import Box
 
 
 def _row(cls, u, v, visib):
@@ -38,6 +39,30 @@ def test_one_to_one_same_class_within_15_px_recall_over_the_visible_parts():
     found, parts, matched = score_view(dets + [_det(7, 104, 101)], rows, class_of)
     assert (found, parts, matched) == (2, 4, 3)
     assert score_view([], rows, class_of) == (0, 4, 0)
+
+
+def test_stage_one_alone_is_scored_by_the_visible_boxes_centres_one_to_one():
+    class_of = {1: 7, 2: 9}
+    rows = np.array(
+        [
+            _row(1, 100, 100, 0.9),
+            _row(1, 104, 100, 0.9),  # one box cannot find both
+            _row(2, 300, 300, 0.9),  # a box of the other class is there
+            _row(1, 500, 500, 0.5),  # barely visible: not counted
+        ],
+        float,
+    )
+    rows[0, 5:9] = [80, 90, 130, 110]  # its visible box is centred at (105, 100), not at (100, 100)
+
+    def box(k, u, v):
+        return Box(k, np.array([u, v], float), np.array([20.0, 20.0]), 0.9)
+
+    boxes = [box(0, 105, 100), box(0, 300, 300), box(0, 500, 500)]
+    assert score_boxes(boxes, rows, class_of, any_class=False) == 1
+    # a generalist's boxes are "a part": the one on the part of the other class finds it
+    assert score_boxes(boxes, rows, class_of, any_class=True) == 2
+    assert score_boxes(boxes + [box(0, 104, 101)], rows, class_of, any_class=False) == 2
+    assert score_boxes([], rows, class_of, any_class=False) == 0
 
 
 def test_a_fine_tunes_learning_curve_continues_its_bases():
