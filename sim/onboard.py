@@ -40,10 +40,11 @@ from posefuse.evaluation.eval_points import with_eval_points
 MANIFEST = "parts.json"
 MANIFEST_VERSION = 1
 VALIDATION_SEED = 880_000  # held-out renders: disjoint from training (sim.train) and test seeds
-# scored parts (visib > 0.75) a validation scene gives at 4 or 8 views, a first guess of how
-# many scenes the validation renders: the five meshes of ../shared/objects gave 7.3 (mixed) and
-# 11 (robi) at 8 views; a part set that gives fewer gets more scenes, up to MAX_HELD_SCENES
-INSTANCES_PER_SCENE = {"mixed": 6.0, "robi": 10.0}
+# scored parts (visib > 0.75) a validation scene gives at its last view, a first guess of how
+# many scenes the validation renders: the five meshes of ../shared/objects gave 7.9 (mixed) and
+# 9.0 (robi) in onboarding's validation renders; a part set that gives fewer gets more scenes,
+# in rounds sized from what the first gave, up to MAX_HELD_SCENES
+INSTANCES_PER_SCENE = {"mixed": 7.5, "robi": 9.0}
 MAX_HELD_SCENES = 40
 # the network and the estimator on a validation view, besides its render
 VALIDATION_S_PER_VIEW = 0.5
@@ -57,7 +58,7 @@ class OnboardConfig:
     views: int = 6  # per training scene
     val_scenes: int = 4  # calibration renders of the training run
     # the validation renders, per profile: scenes until at least ``held_instances`` parts are
-    # scored (visib > 0.75) at each of 4 and 8 views, or ``held_scenes`` scenes when given
+    # scored (visib > 0.75) at the last view (8), or ``held_scenes`` scenes when given
     held_instances: int = 100
     held_scenes: int | None = None
     held_views: int = 8
@@ -289,16 +290,10 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 photometric=config.photometric,
             ),
         )
-    from posefuse.sim.train import TRAIN_SEED_BASE, profile_of, render_scene
-
-    # A pilot scene tells how long a view takes to render here (both profiles alternate).
-    t0 = time.time()
-    render_scene((str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, profile_of(1, 1.0), 0.5))
-    per_view = (time.time() - t0) / 2 / max(config.workers, 1)
+    setup, per_view = pilot_render(catalog_dir)
+    workers = max(config.workers, 1)
     left = stages.deadline - time.time()
-    # validation: its renders, the network on them and the tracker, measured as ~3 s a view
-    # validation: its renders (in ``workers`` processes) and the network and the tracker on them
-    reserve = validation_views(config) * (per_view + VALIDATION_S_PER_VIEW)
+    reserve = validation_seconds(config, setup, per_view)
     usable = left - reserve
     if usable < 30:
         raise PosefuseError(
@@ -306,7 +301,9 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
             f"templates, not enough to train and validate (about {reserve / 60:.1f} min of "
             "validation alone); raise --minutes"
         )
-    n_views = max(int(usable / 3 / per_view), 2 * config.views)
+    # the training scenes' renders take about a third of what is left
+    per_scene = (setup + config.views * per_view) / workers
+    n_views = max(int(usable / 3 / per_scene) * config.views, 2 * config.views)
     n_scenes = max(n_views // config.views, 2)
     train_config = TrainConfig(
         n_scenes=n_scenes,
@@ -384,21 +381,47 @@ def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) 
         }
         acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
         echo(
-            f"  {profile} ({n_scenes} scenes, {scored.get('8', min(scored.values()))} parts "
-            f"scored at 8 views): front end recall {score.recall:.3f}, precision "
+            f"  {profile} ({n_scenes} scenes, {scored[str(config.held_views)]} parts scored at "
+            f"{config.held_views} views): front end recall {score.recall:.3f}, precision "
             f"{score.precision:.3f}; {acc}"
         )
     return figures
 
 
-def validation_views(config) -> int:
-    """How many views the validation is expected to render, both profiles together."""
+def pilot_render(catalog_dir: Path) -> tuple[float, float]:
+    """(seconds to lay out and prepare a scene, seconds to render one of its views) here, in one
+    process: a robi scene (the slower profile: its parts are dropped one by one onto the pile)
+    prepared, then two of its views rendered."""
+    from posefuse.sim.train import TRAIN_SEED_BASE
+    from posefuse.sim.train_data import _cached_catalog, _scene_renderer, render_views
+
+    _cached_catalog(str(catalog_dir))  # loaded once, as each worker has it
+    t0 = time.perf_counter()
+    prepared = _scene_renderer(str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, "robi")
+    t1 = time.perf_counter()
+    render_views(*prepared, 0.5)
+    t2 = time.perf_counter()
+    return t1 - t0, (t2 - t1) / 2
+
+
+def validation_scenes(config) -> int:
+    """How many scenes the validation is expected to render, both profiles together."""
     if config.held_scenes is not None:
-        return 2 * config.held_scenes * config.held_views
+        return 2 * config.held_scenes
     return sum(
-        min(int(np.ceil(config.held_instances / guess)), MAX_HELD_SCENES) * config.held_views
+        min(int(np.ceil(config.held_instances / guess)), MAX_HELD_SCENES)
         for guess in INSTANCES_PER_SCENE.values()
     )
+
+
+def validation_seconds(config, setup: float, per_view: float) -> float:
+    """The validation's expected wall time: its scenes rendered in ``config.workers`` processes
+    (``setup`` and ``per_view`` from :func:`pilot_render`), and the network and the tracker on
+    every view."""
+    scenes = validation_scenes(config)
+    views = scenes * config.held_views
+    render = (scenes * setup + views * per_view) / max(config.workers, 1)
+    return render + views * VALIDATION_S_PER_VIEW
 
 
 def scored_instances(root: Path, scene_ids, checkpoints: tuple[int, ...]) -> dict[int, int]:
@@ -417,24 +440,23 @@ def render_validation(
     catalog: Catalog, root: Path, profile: str, seed: int, config
 ) -> tuple[int, dict[str, int]]:
     """Render a profile's validation scenes into ``root``: ``config.held_scenes`` of them, or
-    rounds of scenes until ``held_instances`` parts are scored at 4 and at 8 views (each round
+    rounds of scenes until ``held_instances`` parts are scored at the last view (each round
     sized from the scenes so far), at most MAX_HELD_SCENES. Returns the scenes and the scored
-    parts per count of views."""
+    parts per count of views reported (4, 8 and the last)."""
     from posefuse.sim.scenes import PROFILES
     from posefuse.sim.synth import SynthConfig, generate_dataset, write_synth_json
 
     spec = _with_views(PROFILES[profile], config.held_views)
-    checkpoints = tuple(n for n in (4, 8) if n <= config.held_views) or (config.held_views,)
+    last = config.held_views
+    checkpoints = tuple(sorted({n for n in (4, 8) if n <= last} | {last}))
     done, counts = 0, dict.fromkeys(checkpoints, 0)
     target = config.held_instances
     while True:
         if config.held_scenes is not None:
             n = config.held_scenes - done
         else:
-            per_scene = (
-                min(counts.values()) / done if done else INSTANCES_PER_SCENE.get(profile, 6.0)
-            )
-            missing = target - min(counts.values())
+            per_scene = counts[last] / done if done else INSTANCES_PER_SCENE.get(profile, 6.0)
+            missing = target - counts[last]
             n = int(np.ceil(missing / max(per_scene, 0.5)))
         n = min(n, MAX_HELD_SCENES - done)
         if n <= 0:
@@ -444,7 +466,7 @@ def render_validation(
         for c, m in scored_instances(root, range(done, done + n), checkpoints).items():
             counts[c] += m
         done += n
-        if config.held_scenes is not None or min(counts.values()) >= target:
+        if config.held_scenes is not None or counts[last] >= target:
             break
     write_synth_json(root, SynthConfig(n_scenes=done, seed=seed, scene=spec, profile=profile))
     return done, {str(c): m for c, m in counts.items()}

@@ -183,9 +183,13 @@ def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, 
     view). The picklable unit of parallel rendering."""
     catalog_dir, scene_index, views, seed_base, profile, small_scale = args[:6]
     materials_kind = args[6] if len(args) > 6 else "catalog"
-    catalog, scene, renderer, seed = _scene_renderer(
-        catalog_dir, scene_index, views, seed_base, profile, materials_kind
-    )
+    prepared = _scene_renderer(catalog_dir, scene_index, views, seed_base, profile, materials_kind)
+    return render_views(*prepared, small_scale)
+
+
+def render_views(catalog, scene, renderer, seed: int, small_scale: float) -> list:
+    """The views of a prepared scene (``_scene_renderer``), as :func:`render_scene` returns
+    them."""
     rng = np.random.default_rng(seed + 1)
     sw, sh = round(FULL.width * small_scale), round(FULL.height * small_scale)
     out = []

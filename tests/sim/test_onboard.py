@@ -230,10 +230,10 @@ def test_validation_renders_scenes_until_enough_parts_are_scored(tmp_path, monke
     monkeypatch.setattr(synth, "generate_dataset", generate)
     config = onboard.OnboardConfig(held_instances=40)
     n, scored = onboard.render_validation(None, tmp_path / "v", "mixed", 7, config)
-    # a first round from the guess (40 / 6: 7 scenes, 21 parts), then one sized from what the
-    # scenes gave (3 a scene: 19 / 3, 7 more), then the rest
-    assert calls[:2] == [(0, 7), (7, 7)]
-    assert scored["4"] == scored["8"] >= 40 and n == sum(c[1] for c in calls)
+    # a first round from the guess (40 / 7.5: 6 scenes, 18 parts), then one sized from what the
+    # scenes gave (3 a scene: 22 / 3, 8 more, of which the last four give 30)
+    assert calls == [(0, 6), (6, 8)]
+    assert scored["4"] == scored["8"] == 6 * 3 + 4 * 3 + 4 * 30 and n == 14
     synth_json = json.loads((tmp_path / "v" / "synth.json").read_text())
     assert synth_json["n_scenes"] == n and synth_json["seed"] == 7
     # a part set whose scenes score nothing stops at the cap
@@ -248,3 +248,17 @@ def test_validation_renders_scenes_until_enough_parts_are_scored(tmp_path, monke
         None, tmp_path / "x", "mixed", 7, onboard.OnboardConfig(held_scenes=2)
     )
     assert n == 2 and calls == [(0, 2)]
+
+
+def test_the_validations_time_is_its_scenes_rendered_in_parallel_and_every_view_run():
+    from posefuse.sim import onboard
+
+    config = onboard.OnboardConfig(held_instances=100, held_views=8, workers=2)
+    # 100 parts at the guesses: ceil(100 / 7.5) + ceil(100 / 9) scenes of 8 views
+    assert onboard.validation_scenes(config) == 14 + 12
+    views = 26 * 8
+    expected = (26 * 15.0 + views * 2.0) / 2 + views * onboard.VALIDATION_S_PER_VIEW
+    assert onboard.validation_seconds(config, setup=15.0, per_view=2.0) == expected
+    fixed = onboard.OnboardConfig(held_scenes=3, held_views=4, workers=1)
+    assert onboard.validation_scenes(fixed) == 6
+    assert onboard.validation_seconds(fixed, 1.0, 1.0) == 6 + 24 + 24 * 0.5
