@@ -69,6 +69,20 @@ def _least_squares_center(p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.
     return x, sigma2 * np.linalg.inv(A)
 
 
+# a vector this far from unit length comes from a network whose own normalisation was rounded
+# (an int8 model's); the least squares below holds for unit vectors only
+UNIT_TOLERANCE = 1e-3
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    """(n, 2) the vectors as they are when every one is unit to UNIT_TOLERANCE (a float model's,
+    to its rounding: left bit for bit), else each divided by its length."""
+    norms = np.linalg.norm(vectors, axis=1)
+    if not len(norms) or np.all(np.abs(norms - 1.0) <= UNIT_TOLERANCE):
+        return vectors
+    return vectors / np.maximum(norms, 1e-6)[:, None]
+
+
 def _percentile_90(x: np.ndarray) -> float:
     """np.percentile(x, 90) (linear interpolation) by partial sorting: numpy's general
     percentile was an eighth of the voting time at these sizes."""
@@ -95,6 +109,7 @@ def vote_instances(
         instances, best supported first.
     """
     rng = np.random.default_rng(seed)
+    vectors = _unit(vectors)
     remaining = np.arange(len(pixels_xy))
     out: list[VotedInstance] = []
     while len(remaining) >= config.min_inliers and len(out) < config.max_instances:
