@@ -265,3 +265,15 @@ def test_the_validations_time_is_its_scenes_rendered_in_parallel_and_every_view_
     assert onboard.validation_seconds(fixed, 1.0, 1.0) == pytest.approx(
         onboard.VALIDATION_MARGIN * (6 + 24 + 24 * 0.5)
     )
+
+
+@pytest.mark.parametrize("flag", ["--held-instances", "--held-scenes"])
+def test_a_validation_of_nothing_is_refused_before_any_work(tmp_path, capsys, flag):
+    from posefuse.sim.parts import build_part
+
+    path = tmp_path / "zigzag.stl"
+    build_part("zigzag").export(path)
+    out = tmp_path / "out"
+    code, text = _run(["onboard", str(path), "--out", str(out), flag, "0"], capsys)
+    assert code == 2 and "--held-instances and --held-scenes must be at least 1" in text
+    assert not out.exists()
