@@ -20,6 +20,7 @@ enough to leave the validation its measured share.
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,16 +111,52 @@ class Stages:
         return None if self.budget_s is None else self.start + self.budget_s
 
 
+BOP_MODEL_NAME = re.compile(r"^obj_(\d{6})$")
+
+
+def part_ids_and_names(paths: list[str]) -> tuple[list[int], list[str]]:
+    """The obj_id and name of each mesh.
+
+    Meshes named as a BOP dataset names them (``obj_000005.ply``, every one of them) keep their
+    ids, so the part set's model scores on the dataset they came from; each takes its name from
+    the ``models_info.json`` beside it where that gives one (LM-O's "can"), else its file name.
+    Any other set of meshes is numbered 1..N in the order given, named by file.
+    """
+    stems = [Path(p).stem for p in paths]
+    matches = [BOP_MODEL_NAME.match(s) for s in stems]
+    if not paths or not all(matches):
+        return list(range(1, len(paths) + 1)), stems
+    ids = [int(m.group(1)) for m in matches]
+    if min(ids) < 1:
+        raise PosefuseError(f"onboard: a BOP model's obj_id must be positive, got {stems}")
+    names = []
+    for path, obj_id, stem in zip(paths, ids, stems, strict=True):
+        info_path = Path(path).parent / "models_info.json"
+        name = stem
+        if info_path.is_file():
+            try:
+                entry = json.loads(info_path.read_text()).get(str(obj_id), {})
+            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as exc:
+                raise PosefuseError(f"onboard: {info_path} is not a BOP models_info: {exc}") from None
+            if isinstance(entry, dict) and str(entry.get("name", "")).strip():
+                name = str(entry["name"]).strip()
+        names.append(name)
+    return ids, names
+
+
 def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Catalog, dict]:
-    """The catalog of the meshes and, per part, its symmetry report as JSON."""
-    names = [Path(p).stem for p in paths]
+    """The catalog of the meshes (ids and names by :func:`part_ids_and_names`) and, per part,
+    its symmetry report as JSON."""
+    ids, names = part_ids_and_names(paths)
     if len(set(names)) != len(names):
         raise PosefuseError(f"onboard: two meshes share a name: {sorted(names)}")
+    if len(set(ids)) != len(ids):
+        raise PosefuseError(f"onboard: two meshes share an obj_id: {sorted(ids)}")
     unknown = sorted(set(config.symmetry) - set(names))
     if unknown:
         raise PosefuseError(f"--symmetry: no mesh named {unknown}; the parts are {names}")
     models, reports = [], {}
-    for k, (path, name) in enumerate(zip(paths, names, strict=True)):
+    for obj_id, path, name in zip(ids, paths, names, strict=True):
         mesh = load_mesh(path, units=config.units)
         if not mesh.is_watertight:
             # CAD exports often are: rendering, symmetry detection and the pose errors work on
@@ -140,7 +177,7 @@ def read_parts(paths: list[str], config: OnboardConfig, echo=print) -> tuple[Cat
             disc, cont = report.discrete, report.continuous
             decided = "detected"
         models.append(
-            make_model(k + 1, name, mesh, disc, cont, near_symmetries=report.alternatives)
+            make_model(obj_id, name, mesh, disc, cont, near_symmetries=report.alternatives)
         )
         reports[name] = {
             "report": report,

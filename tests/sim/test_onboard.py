@@ -92,6 +92,39 @@ def test_an_open_mesh_is_accepted_with_a_note(tmp_path):
     assert any("not watertight" in n and "open.stl" in n for n in notes), notes
 
 
+def test_bop_named_meshes_keep_their_ids_and_names_and_match_the_dataset_catalog(tmp_path):
+    """A BOP dataset's meshes onboarded keep obj_id and name, so the part set's model loads
+    with the dataset's own catalog (same ids, names and meshes: the same catalog hash)."""
+    from posefuse.estimator.core.objects import load_catalog, make_model, write_catalog
+    from posefuse.estimator.frontend.network import catalog_hash
+    from posefuse.sim.onboard import OnboardConfig, read_parts
+    from posefuse.sim.parts import build_part
+
+    models = [
+        make_model(k, name, build_part(part).apply_scale(1e-3), detect=False)  # mm -> m
+        for k, name, part in ((7, "bolt", "chrome_screw"), (12, "elbow", "tube_fitting"))
+    ]
+    write_catalog(tmp_path / "models", models)
+    info = json.loads((tmp_path / "models" / "models_info.json").read_text())
+    info["12"].pop("name")  # a models_info without names: the file's name stands
+    (tmp_path / "models" / "models_info.json").write_text(json.dumps(info))
+    paths = [str(tmp_path / "models" / f"obj_{k:06d}.ply") for k in (12, 7)]
+    catalog, _ = read_parts(paths, OnboardConfig())
+    assert {k: m.name for k, m in catalog.items()} == {7: "bolt", 12: "obj_000012"}
+    dataset = load_catalog(tmp_path / "models")
+    assert {k: m.name for k, m in dataset.items()} == {7: "bolt", 12: "obj_000012"}
+    assert catalog_hash(catalog) == catalog_hash(dataset)
+
+
+def test_meshes_not_all_bop_named_are_numbered_in_order(tmp_path):
+    from posefuse.sim.onboard import part_ids_and_names
+
+    ids, names = part_ids_and_names(["a/obj_000005.ply", "a/screw.stl"])
+    assert ids == [1, 2] and names == ["obj_000005", "screw"]
+    ids, names = part_ids_and_names(["x/obj_000009.ply", "y/obj_000003.ply"])
+    assert ids == [9, 3] and names == ["obj_000009", "obj_000003"]
+
+
 def test_symmetry_overrides_name_known_parts(tmp_path, capsys):
     from posefuse.sim.parts import build_part
 
