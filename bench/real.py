@@ -67,6 +67,23 @@ def measure(dataset, frontend, quiet: bool = True) -> dict[int, object]:
     }
 
 
+def network_scores(dataset, parts: str):
+    """The part set's network front end on every view of ``dataset``: its recall and precision
+    (``evaluation.frontend_metrics``: a detection is right on a part more than 75% visible,
+    of its class, within 15 px of its centre)."""
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.evaluation.frontend_metrics import score_frontend
+    from posefuse.sim.onboard import load_part_set
+
+    network = NetworkFrontend(str(load_part_set(parts).model), dataset.catalog)
+
+    def detect(view):
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        return network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+
+    return score_frontend(dataset, detect, list(dataset.views()))
+
+
 def _cell(report) -> str:
     if report is None or not report.n_instances:
         return "-"
@@ -110,6 +127,21 @@ def main(argv: list[str] | None = None) -> int:
             )
             per_object[f"{name}, {label}"] = reports.get(4)
             print(rows[-1], flush=True)
+    if args.parts:
+        print("\nthe network front end (parts more than 75% visible, within 15 px):\n")
+        print("| images | recall | precision | median centre error px | mean 2D NEES | parts |")
+        print("|---|---|---|---|---|---|")
+        for label, dataset in (("real", real), ("rendered twin", twin)):
+            score = network_scores(dataset, args.parts)
+            rates[f"network front end / {label}"] = {
+                "recall": score.recall,
+                "precision": score.precision,
+            }
+            print(
+                f"| {label} | {score.recall:.3f} | {score.precision:.3f} | "
+                f"{score.median_center_error_px:.2f} | {score.mean_nees:.2f} | "
+                f"{score.n_instances} |"
+            )
     print("\nADD-sym < 0.1 d (visib > 0.75), instances scored in brackets:\n")
     print("\n".join(rows))
     names = list(per_object)

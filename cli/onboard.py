@@ -40,7 +40,8 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         symmetry=_parse_symmetry(args.symmetry),
         views=args.views,
         held_scenes=args.held_scenes,
-        held_instances=args.held_instances,
+        held_instances=100 if args.held_instances is None else args.held_instances,
+        fit_validation=args.held_instances is None,
         held_views=args.held_views,
         workers=args.workers,
         seed=args.seed,
@@ -147,9 +148,10 @@ def register(subparsers) -> None:
     p.add_argument(
         "--held-instances",
         type=int,
-        default=100,
+        default=None,
         help="validation: render held-out scenes of each profile until this many parts are "
-        "scored (more than 75%% visible) at 4 and at 8 views",
+        "scored (more than 75%% visible) at 8 views (default: 100, fewer where the budget "
+        "cannot hold them beside training, said in the output)",
     )
     p.add_argument(
         "--held-scenes",

@@ -53,6 +53,10 @@ VALIDATION_S_PER_VIEW = 0.5
 # 324 s for the five meshes of ../shared/objects (26 scenes; two render processes share the
 # cores' memory and clock, and the pilot's scene is one draw of the profile)
 VALIDATION_MARGIN = 1.4
+# within the budget, the validation takes at most this share of what the catalog and templates
+# leave (the rest trains), its target lowered to fit, down to MIN_HELD_INSTANCES parts a profile
+VALIDATION_SHARE_MAX = 0.5
+MIN_HELD_INSTANCES = 30
 
 
 @dataclass(frozen=True)
@@ -66,6 +70,11 @@ class OnboardConfig:
     # scored (visib > 0.75) at the last view (8), or ``held_scenes`` scenes when given
     held_instances: int = 100
     held_scenes: int | None = None
+    # the budget's validation may shrink: where the validation of ``held_instances`` parts would
+    # take more than VALIDATION_SHARE_MAX of what the catalog and templates leave, its target is
+    # lowered to fit (never below MIN_HELD_INSTANCES) and the run says so; False (a target the
+    # person chose) keeps it and refuses a budget too small for it
+    fit_validation: bool = True
     held_views: int = 8
     workers: int = 2
     seed: int = 0
@@ -88,7 +97,7 @@ class Stages:
         self.start = time.time()
         self.budget_s = budget_s
         self.seconds: dict[str, float] = {}
-        self._echo = echo
+        self.echo = echo
         self._t = self.start
 
     def begin(self, k: int, name: str, detail: str = "") -> None:
@@ -100,7 +109,7 @@ class Stages:
             else ""
         )
         head = f"[{k}/4] {name}{': ' + detail if detail else ''}"
-        self._echo(f"{head}  (elapsed {elapsed / 60:.1f} min{left})")
+        self.echo(f"{head}  (elapsed {elapsed / 60:.1f} min{left})")
 
     def end(self, name: str) -> float:
         self.seconds[name] = round(time.time() - self._t, 1)
@@ -137,7 +146,9 @@ def part_ids_and_names(paths: list[str]) -> tuple[list[int], list[str]]:
             try:
                 entry = json.loads(info_path.read_text()).get(str(obj_id), {})
             except (json.JSONDecodeError, UnicodeDecodeError, AttributeError) as exc:
-                raise PosefuseError(f"onboard: {info_path} is not a BOP models_info: {exc}") from None
+                raise PosefuseError(
+                    f"onboard: {info_path} is not a BOP models_info: {exc}"
+                ) from None
             if isinstance(entry, dict) and str(entry.get("name", "")).strip():
                 name = str(entry["name"]).strip()
         names.append(name)
@@ -253,7 +264,7 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
         else f"render {config.train_scenes} training scenes, train {config.steps} steps",
     )
     model_path = out / "model" / "parts.onnx"
-    card = _train(out / "catalog", model_path, catalog, config, stages)
+    card, config = _train(out / "catalog", model_path, catalog, config, stages)
     stages.end("front end")
 
     stages.begin(4, "validation", "held-out renders of both profiles, network front end")
@@ -278,6 +289,9 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
         ],
         "training": card.get("training", {}),
         "validation": validation,
+        "validation_target_parts": (
+            None if config.held_scenes is not None else config.held_instances
+        ),
         "stage_seconds": stages.seconds,
         "budget_minutes": None if config.steps is not None else config.minutes,
         "training_steps": config.steps,
@@ -330,10 +344,11 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 init=init,
                 photometric=config.photometric,
             ),
-        )
+        ), config
     setup, per_view = pilot_render(catalog_dir)
     workers = max(config.workers, 1)
     left = stages.deadline - time.time()
+    config = fitted_validation(config, left, setup, per_view, stages.echo)
     reserve = validation_seconds(config, setup, per_view)
     usable = left - reserve
     if usable < 30:
@@ -358,7 +373,39 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         init=init,
         photometric=config.photometric,
     )
-    return train(catalog_dir, model_path, train_config)
+    return train(catalog_dir, model_path, train_config), config
+
+
+def fitted_validation(config, left_s: float, setup: float, per_view: float, echo=print):
+    """``config`` with the validation's target lowered so that the validation takes at most
+    VALIDATION_SHARE_MAX of the ``left_s`` seconds the budget has after the catalog and
+    templates (its time estimated by :func:`validation_seconds`), never below
+    MIN_HELD_INSTANCES; unchanged where it fits, where the person fixed the validation
+    (``fit_validation`` False, or ``held_scenes``), or where the target is already that low."""
+    import dataclasses
+
+    reserve = validation_seconds(config, setup, per_view)
+    allowed = VALIDATION_SHARE_MAX * left_s
+    if (
+        not config.fit_validation
+        or config.held_scenes is not None
+        or reserve <= allowed
+        or config.held_instances <= MIN_HELD_INSTANCES
+    ):
+        return config
+    target = config.held_instances
+    while target > MIN_HELD_INSTANCES:  # the scene counts are whole, so step down to fit
+        target = max(MIN_HELD_INSTANCES, int(target * 0.9))
+        fitted = dataclasses.replace(config, held_instances=target)
+        if validation_seconds(fitted, setup, per_view) <= allowed:
+            break
+    needed = config.minutes + (reserve / VALIDATION_SHARE_MAX - left_s) / 60
+    echo(
+        f"  note: a validation of {config.held_instances} parts a profile would take about "
+        f"{reserve / 60:.1f} of the {left_s / 60:.1f} min left; it scores {target} parts a "
+        f"profile instead (--minutes {np.ceil(needed):.0f} for {config.held_instances})"
+    )
+    return fitted
 
 
 def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) -> dict:

@@ -33,3 +33,27 @@ def test_a_dataset_and_its_twin_side_by_side(small_dataset_root, tmp_path, capsy
     printed = capsys.readouterr().out
     assert "| oracle, boxes | rendered twin |" in printed and "per object at 4 views" in printed
     assert (tmp_path / "twin" / "camera.json").is_file()  # rendered where it was missing
+
+
+def test_a_part_sets_network_is_scored_as_a_front_end_on_both(
+    small_dataset_root, tmp_path, capsys
+):
+    """With --parts, the network's rows and its front end's recall and precision on the real
+    dataset and on its twin (here a part set whose model is the shipped one, of the shipped
+    catalog the small dataset is rendered from)."""
+    from posefuse.service.resources import DEFAULT_MODEL
+    from posefuse.sim.onboard import MANIFEST, MANIFEST_VERSION
+
+    parts = tmp_path / "parts"
+    parts.mkdir()
+    manifest = {"version": MANIFEST_VERSION, "catalog": ".", "model": str(DEFAULT_MODEL)}
+    (parts / MANIFEST).write_text(json.dumps(manifest))
+    out = tmp_path / "rates.json"
+    args = ["--real", str(small_dataset_root), "--parts", str(parts), "--out", str(tmp_path)]
+    assert real.main([*args, "--json", str(out), "--quiet"]) == 0
+    rates = json.loads(out.read_text())
+    assert {"network / real", "network / rendered twin"} <= set(rates)
+    for label in ("real", "rendered twin"):
+        score = rates[f"network front end / {label}"]
+        assert 0.5 <= score["recall"] <= 1.0 and 0.5 <= score["precision"] <= 1.0, score
+    assert "| rendered twin | " in capsys.readouterr().out

@@ -300,6 +300,30 @@ def test_the_validations_time_is_its_scenes_rendered_in_parallel_and_every_view_
     )
 
 
+def test_a_validation_too_long_for_the_budget_shrinks_to_half_of_what_is_left_and_says_so():
+    from posefuse.sim import onboard
+
+    config = onboard.OnboardConfig(held_instances=100, held_views=8, workers=2)
+    full = onboard.validation_seconds(config, setup=15.0, per_view=2.0)
+    notes = []
+    # room for it: unchanged, nothing said
+    assert onboard.fitted_validation(config, 3 * full, 15.0, 2.0, notes.append) is config
+    assert notes == []
+    left = 1.2 * full  # it would take 83% of what is left
+    fitted = onboard.fitted_validation(config, left, 15.0, 2.0, notes.append)
+    assert onboard.MIN_HELD_INSTANCES <= fitted.held_instances < 100
+    assert onboard.validation_seconds(fitted, 15.0, 2.0) <= onboard.VALIDATION_SHARE_MAX * left
+    assert len(notes) == 1 and f"scores {fitted.held_instances} parts" in notes[0]
+    # never below the floor, however short the budget
+    tiny = onboard.fitted_validation(config, 0.01 * full, 15.0, 2.0, notes.append)
+    assert tiny.held_instances == onboard.MIN_HELD_INSTANCES
+    # a target or a scene count the person chose is kept
+    chosen = onboard.OnboardConfig(held_instances=100, fit_validation=False)
+    assert onboard.fitted_validation(chosen, 0.5 * full, 15.0, 2.0, notes.append) is chosen
+    scenes = onboard.OnboardConfig(held_scenes=20)
+    assert onboard.fitted_validation(scenes, 0.5 * full, 15.0, 2.0, notes.append) is scenes
+
+
 @pytest.mark.parametrize("flag", ["--held-instances", "--held-scenes"])
 def test_a_validation_of_nothing_is_refused_before_any_work(tmp_path, capsys, flag):
     from posefuse.sim.parts import build_part
