@@ -35,9 +35,7 @@ def test_a_dataset_and_its_twin_side_by_side(small_dataset_root, tmp_path, capsy
     assert (tmp_path / "twin" / "camera.json").is_file()  # rendered where it was missing
 
 
-def test_a_part_sets_network_is_scored_as_a_front_end_on_both(
-    small_dataset_root, tmp_path, capsys
-):
+def test_a_part_sets_network_is_scored_as_a_front_end_on_both(small_dataset_root, tmp_path, capsys):
     """With --parts, the network's rows and its front end's recall and precision on the real
     dataset and on its twin (here a part set whose model is the shipped one, of the shipped
     catalog the small dataset is rendered from)."""
