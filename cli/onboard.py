@@ -49,6 +49,8 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         train_scenes=args.train_scenes,
         init=None if args.from_scratch else (args.init or "shipped"),
         photometric=args.photometric,
+        backgrounds=args.backgrounds,
+        composite=args.composite,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -143,6 +145,24 @@ def register(subparsers) -> None:
         action="store_true",
         help="train with a real camera's exposure, white balance, blur, noise and JPEG drawn "
         "per sample (for real photographs)",
+    )
+    p.add_argument(
+        "--backgrounds",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training samples (both stages) whose background, all that is no "
+        "part, is replaced by procedural clutter (sim.backgrounds: for photographs of parts "
+        "among other things); kept in the checkpoint (default: 0, the bins as rendered)",
+    )
+    p.add_argument(
+        "--composite",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training scenes composed from the parts rendered alone, in any "
+        "orientation, onto clutter (sim.composite: many times faster than a rendered scene, "
+        "without a bin's contact and shadows) (default: 0, all rendered)",
     )
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(

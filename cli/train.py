@@ -39,6 +39,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
         raise PosefuseError(f"--input-scale: {args.input_scale}: must be in [0.1, 1]")
     if args.width < 1:
         raise PosefuseError(f"--width: {args.width}: must be at least 1")
+    for name in ("backgrounds", "composite"):
+        if not 0.0 <= getattr(args, name) <= 1.0:
+            raise PosefuseError(f"--{name}: {getattr(args, name)}: must be in [0, 1]")
     if args.crop_width is not None and args.crop_width < 1:
         raise PosefuseError(f"--crop-width: {args.crop_width}: must be at least 1")
     if args.vote_loss is not None and args.vote_loss < 0:
@@ -60,6 +63,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         crop_box_channel=args.box_channel,
         dihedral=args.dihedral,
         photometric=args.photometric,
+        backgrounds=args.backgrounds,
+        composite=args.composite,
         seed=args.seed,
         workers=args.workers,
         threads=args.threads,
@@ -155,6 +160,23 @@ def register(subparsers) -> None:
         action="store_true",
         help="draw a real camera's exposure, white balance, tone curve, blur, noise and JPEG "
         "per training sample (sim.photometric); kept in the checkpoint",
+    )
+    p.add_argument(
+        "--backgrounds",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training samples (both stages) whose background, all that is no "
+        "part, is replaced by procedural clutter (sim.backgrounds: for photographs of parts "
+        "among other things); kept in the checkpoint (default: 0, the bins as rendered)",
+    )
+    p.add_argument(
+        "--composite",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training scenes composed from parts rendered alone onto clutter "
+        "(sim.composite); kept in the checkpoint (default: 0, all rendered)",
     )
     p.add_argument(
         "--vote-loss",

@@ -88,6 +88,9 @@ class OnboardConfig:
     # None trains from scratch
     init: str | None = "shipped"
     photometric: bool = False  # a real camera's effects drawn per training sample (sim.photometric)
+    backgrounds: float = 0.0  # the share of training samples on clutter (sim.backgrounds)
+    # the share of training scenes composed from parts rendered alone (sim.composite)
+    composite: float = 0.0
 
 
 class Stages:
@@ -228,7 +231,10 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
                 f"--steps must be positive and --train-scenes at least 2, got {config.steps} "
                 f"and {config.train_scenes}"
             )
-    elif config.minutes <= 0:
+    for name, share in (("backgrounds", config.backgrounds), ("composite", config.composite)):
+        if not 0.0 <= share <= 1.0:
+            raise PosefuseError(f"--{name} must be in [0, 1], got {share}")
+    if config.steps is None and config.minutes <= 0:
         raise PosefuseError(f"--minutes must be positive, got {config.minutes}")
     if config.held_instances < 1 or (config.held_scenes is not None and config.held_scenes < 1):
         raise PosefuseError(
@@ -343,6 +349,8 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 deadline=None,
                 init=init,
                 photometric=config.photometric,
+                backgrounds=config.backgrounds,
+                composite=config.composite,
             ),
         ), config
     setup, per_view = pilot_render(catalog_dir)
@@ -359,6 +367,9 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         )
     # the training scenes' renders take about a third of what is left
     per_scene = (setup + config.views * per_view) / workers
+    if config.composite > 0:
+        composed = pilot_compose(catalog_dir, config.views) / workers
+        per_scene = (1 - config.composite) * per_scene + config.composite * composed
     n_views = max(int(usable / 3 / per_scene) * config.views, 2 * config.views)
     n_scenes = max(n_views // config.views, 2)
     train_config = TrainConfig(
@@ -372,6 +383,8 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         deadline=stages.deadline - reserve,
         init=init,
         photometric=config.photometric,
+        backgrounds=config.backgrounds,
+        composite=config.composite,
     )
     return train(catalog_dir, model_path, train_config), config
 
@@ -490,6 +503,17 @@ def pilot_render(catalog_dir: Path) -> tuple[float, float]:
     render_views(*prepared, 0.5)
     t2 = time.perf_counter()
     return t1 - t0, (t2 - t1) / 2
+
+
+def pilot_compose(catalog_dir: Path, views: int) -> float:
+    """Seconds to compose one training scene of ``views`` views here (``sim.composite``), in
+    one process: a mixed one, whose cut-outs are of every part."""
+    from posefuse.sim.train import TRAIN_SEED_BASE
+    from posefuse.sim.train_data import compose_scene
+
+    t0 = time.perf_counter()
+    compose_scene(str(catalog_dir), 0, views, TRAIN_SEED_BASE + 7, "mixed", 0.5)
+    return time.perf_counter() - t0
 
 
 def validation_scenes(config) -> int:

@@ -47,6 +47,7 @@ from posefuse.estimator.frontend.network import (
 )
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import score_frontend
+from posefuse.sim.backgrounds import Backgrounds
 from posefuse.sim.photometric import Photometric
 from posefuse.sim.scenes import REALSENSE_1280x720
 from posefuse.sim.train_data import (
@@ -102,6 +103,12 @@ class TrainConfig:
     materials: str = "catalog"  # or "random": see sim.train_data.RenderSpec
     # a real camera's effects drawn per training sample (sim.photometric); kept in the checkpoint
     photometric: bool = False
+    # the share of training samples whose background (all that is no part) is replaced by
+    # procedural clutter (sim.backgrounds); 0: the bins as rendered. Kept in the checkpoint
+    backgrounds: float = 0.0
+    # the share of training scenes composed from parts rendered alone onto clutter
+    # (sim.composite: many times faster to make than a rendered scene); 0: all rendered
+    composite: float = 0.0
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -174,6 +181,8 @@ _STREAM_FIELDS = (
     "agnostic",
     "materials",
     "photometric",
+    "backgrounds",
+    "composite",
 )
 
 
@@ -185,6 +194,8 @@ _OPTIONAL_STREAM_FIELDS = (
     "crop_width",
     "photometric",
     "input_scale",
+    "backgrounds",
+    "composite",
 )
 
 
@@ -573,6 +584,8 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             # a checkpoint older than the option was trained without it
             dihedral=bool(stored.get("dihedral", False)),
             photometric=bool(stored.get("photometric", False)),
+            backgrounds=float(stored.get("backgrounds", 0.0)),
+            composite=float(stored.get("composite", 0.0)),
             input_scale=float(stored.get("input_scale", INPUT_SCALE)),
         )
         if config.vote_loss is None:
@@ -610,6 +623,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         config.robi_fraction,
         small_scale=config.input_scale,
         materials=config.materials,
+        composite=config.composite,
     )
     ts = render_training_set(catalog_dir, spec, data_dir, config.workers, "render train")
     val_spec = dataclasses.replace(spec, n_scenes=config.val_scenes, seed_base=VAL_SEED_BASE)
@@ -649,6 +663,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         box_channel=config.crop_box_channel,
         dihedral=config.dihedral,
         photometric=Photometric() if config.photometric else None,
+        backgrounds=Backgrounds(p=config.backgrounds) if config.backgrounds > 0 else None,
     )
     start = time.time()
     deadline = start + config.minutes * 60
@@ -747,7 +762,13 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         ),
         "training": {
             "data": f"{config.n_scenes} scenes x {config.views_per_scene} views "
-            f"({config.robi_fraction:.0%} robi profile, the rest mixed), rendered at 1280x720, "
+            f"({config.robi_fraction:.0%} robi profile, the rest mixed), "
+            + (
+                f"{config.composite:.0%} composed from parts rendered alone (sim.composite), "
+                if config.composite > 0
+                else ""
+            )
+            + "rendered at 1280x720, "
             f"scene seeds scene_seed({TRAIN_SEED_BASE}, 0..{config.n_scenes - 1}); "
             f"calibration scene_seed({VAL_SEED_BASE}, 0..{config.val_scenes - 1})",
             "steps": step,
@@ -763,7 +784,13 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "proxy_voting_loss_weight": config.vote_loss or 0.0,
             "augmentation": "mirrors"
             + (", flips and transposes" if config.dihedral else "")
-            + (", a camera's photometric effects (sim.photometric)" if config.photometric else ""),
+            + (", a camera's photometric effects (sim.photometric)" if config.photometric else "")
+            + (
+                f", clutter behind the parts in {config.backgrounds:.0%} of samples "
+                "(sim.backgrounds)"
+                if config.backgrounds > 0
+                else ""
+            ),
             "initialised_from": config.init or (lineage or {}).get("checkpoint"),
             # this run's hours and those of every checkpoint it was fine-tuned from
             "cumulative_cpu_hours": round((cpu_seconds + _lineage_cpu(lineage)) / 3600, 3),

@@ -71,23 +71,39 @@ class RenderSpec:
     # "catalog": each part as it will be seen (``part_material``); "random": a material drawn
     # per part type and scene (``random_material``), for the shape family's generalist
     materials: str = "catalog"
+    # the share of scenes composed from parts rendered alone onto clutter (sim.composite),
+    # interleaved; the rest rendered whole
+    composite: float = 0.0
 
     def __post_init__(self):
         if self.materials not in ("catalog", "random"):
             raise ValueError(f"materials must be 'catalog' or 'random', got {self.materials!r}")
+        if not 0.0 <= self.composite <= 1.0:
+            raise ValueError(f"composite must be in [0, 1], got {self.composite}")
 
     def key(self) -> str:
         key = (
             f"s{self.n_scenes}_v{self.views}_b{self.seed_base}_r{self.robi_fraction:g}"
             f"_x{self.small_scale:g}"
         )
-        return key if self.materials == "catalog" else key + f"_m{self.materials}"
+        if self.materials != "catalog":
+            key += f"_m{self.materials}"
+        return key if self.composite == 0 else key + f"_c{self.composite:g}"
 
 
 def profile_of(scene_index: int, robi_fraction: float) -> str:
     """Which profile a training scene uses: ``robi_fraction`` of them, interleaved, are robi."""
-    robi = int((scene_index + 1) * robi_fraction) > int(scene_index * robi_fraction)
-    return "robi" if robi else "mixed"
+    return "robi" if _interleaved(scene_index, robi_fraction) else "mixed"
+
+
+def is_composed(scene_index: int, composite: float) -> bool:
+    """Whether a training scene is composed (sim.composite): ``composite`` of them, interleaved
+    by pairs of scenes, so that each kind has both profiles (which alternate scene by scene)."""
+    return _interleaved(scene_index // 2, composite)
+
+
+def _interleaved(k: int, share: float) -> bool:
+    return int((k + 1) * share) > int(k * share)
 
 
 def class_index(catalog: Catalog) -> dict[int, int]:
@@ -183,8 +199,61 @@ def render_scene(args: tuple) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, 
     view). The picklable unit of parallel rendering."""
     catalog_dir, scene_index, views, seed_base, profile, small_scale = args[:6]
     materials_kind = args[6] if len(args) > 6 else "catalog"
+    if len(args) > 7 and args[7]:
+        return compose_scene(
+            catalog_dir, scene_index, views, seed_base, profile, small_scale, materials_kind
+        )
     prepared = _scene_renderer(catalog_dir, scene_index, views, seed_base, profile, materials_kind)
     return render_views(*prepared, small_scale)
+
+
+def compose_scene(
+    catalog_dir: str,
+    scene_index: int,
+    views: int,
+    seed_base: int,
+    profile: str,
+    small_scale: float,
+    materials_kind: str = "catalog",
+) -> list:
+    """A composed scene's views (``sim.composite``), as :func:`render_scene` returns them: its
+    cut-outs, parts of the catalog drawn evenly (or one part for a pile, as the robi profile
+    heaps one type), then its views composed from them."""
+    from posefuse.sim.composite import ComposeSpec, compose_view, part_cutout
+
+    catalog = _cached_catalog(catalog_dir)
+    classes = class_index(catalog)
+    rng = np.random.default_rng([scene_seed(seed_base, scene_index), 3])
+    spec = ComposeSpec()
+    ids = sorted(catalog)
+    pile = profile == "robi"
+    drawn = (
+        [ids[int(rng.integers(len(ids)))]] * spec.cutouts
+        if pile
+        else [ids[int(k)] for k in rng.integers(len(ids), size=spec.cutouts)]
+    )
+    materials = {}
+    cutouts = []
+    for obj_id in drawn:
+        if obj_id not in materials:
+            materials[obj_id] = (
+                random_material(rng)
+                if materials_kind == "random"
+                else part_material(catalog[obj_id])
+            )
+        model = catalog[obj_id]
+        cutouts.append(
+            part_cutout(model.mesh, materials[obj_id], classes[obj_id], FULL.K[0, 0], rng, spec)
+        )
+    sw, sh = round(FULL.width * small_scale), round(FULL.height * small_scale)
+    out = []
+    for _ in range(views):
+        rgb, inst, rows = compose_view(cutouts, pile, FULL.height, FULL.width, rng, spec)
+        small = cv2.resize(rgb, (sw, sh), interpolation=cv2.INTER_AREA)
+        ph, pw = -sh % 16, -sw % 16
+        small = cv2.copyMakeBorder(small, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+        out.append((rgb, inst, small, rows))
+    return out
 
 
 def render_views(catalog, scene, renderer, seed: int, small_scale: float) -> list:
@@ -333,6 +402,7 @@ def render_training_set(
             profile_of(k, spec.robi_fraction),
             spec.small_scale,
             spec.materials,
+            is_composed(k, spec.composite),
         )
         for k in todo
     ]

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
+from posefuse.sim.backgrounds import Backgrounds, paste_on_clutter
 from posefuse.sim.photometric import Photometric, photometric
 
 DET_STRIDE = 4
@@ -49,6 +50,8 @@ class BatchConfig:
     dihedral: bool = False
     # a real camera's effects drawn per sample (sim.photometric), None: the renders as they are
     photometric: Photometric | None = None
+    # what is no part replaced by clutter per sample (sim.backgrounds), None: the bin as rendered
+    backgrounds: Backgrounds | None = None
 
 
 def det_targets(
@@ -118,6 +121,19 @@ def flip_detector_sample(image, heat, weight, box, box_mask, axis: int):
     return image, heat, weight, box, box_mask
 
 
+def small_part_alpha(ts, view: int) -> np.ndarray:
+    """(Hs, Ws) float32 in [0, 1]: the share of each pixel of a view's stage-one input
+    (``ts.small_rgb``) that shows a part, from its full-resolution instance map, resized and
+    padded as the renderer makes the input."""
+    Hs, Ws = ts.small_rgb.shape[1:3]
+    scale = ts.meta["spec"]["small_scale"]
+    H, W = ts.full_inst.shape[1:3]
+    sw, sh = round(W * scale), round(H * scale)
+    parts = (np.asarray(ts.full_inst[view]) > 0).astype(np.float32)
+    small = cv2.resize(parts, (sw, sh), interpolation=cv2.INTER_AREA)
+    return cv2.copyMakeBorder(small, 0, Hs - sh, 0, Ws - sw, cv2.BORDER_REPLICATE)
+
+
 def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.random.Generator):
     """(images (B, H, W, 3) uint8, heat (B, C, h, w), weight (B, h, w), box (B, 4, h, w),
     box_mask (B, h, w))."""
@@ -146,6 +162,9 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
             if lo_y <= hi_y:
                 y0 = int(rng.integers(lo_y, hi_y + 1)) * 16
         image = np.asarray(ts.small_rgb[i, y0 : y0 + ch, x0 : x0 + cw])
+        if config.backgrounds is not None:
+            alpha = small_part_alpha(ts, int(i))[y0 : y0 + ch, x0 : x0 + cw]
+            image = paste_on_clutter(np.ascontiguousarray(image), alpha, rng, config.backgrounds)
         heat, weight, box, box_mask = det_targets(
             rows, scale, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes
         )
@@ -239,6 +258,10 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
             crop_side = max(config.box_scale * side * scale, 16.0)
         a, b = crop_transform(center, crop_side, S)
         crop = warp_crop(ts.full_rgb[view], a, b, S, cv2.INTER_LINEAR)
+        if config.backgrounds is not None:
+            parts = (np.asarray(ts.full_inst[view]) > 0).astype(np.float32)
+            alpha = warp_crop(parts, a, b, S, cv2.INTER_LINEAR)
+            crop = paste_on_clutter(np.ascontiguousarray(crop), alpha, rng, config.backgrounds)
         mask = (
             box_mask(center, box_size, a, b, S)
             if config.box_channel

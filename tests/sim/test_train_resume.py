@@ -219,10 +219,18 @@ def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_pa
     train(
         DEFAULT_CATALOG,
         tuned,
-        _config(tmp_path, init=str(base_ckpt), dihedral=True, photometric=True, run_steps=3),
+        _config(
+            tmp_path,
+            init=str(base_ckpt),
+            dihedral=True,
+            photometric=True,
+            backgrounds=0.5,
+            run_steps=3,
+        ),
     )
     _, half = _weights(tuned.with_suffix(".ckpt"))
     assert half["config"]["dihedral"] is True and half["config"]["photometric"] is True
+    assert half["config"]["backgrounds"] == 0.5
     # the base's step and CPU time are kept beside the fine-tune's own, which start at zero
     assert half["init_from"]["step"] == 6
     assert half["init_from"]["cpu_seconds"] == pytest.approx(base["cpu_seconds"])
@@ -235,6 +243,7 @@ def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_pa
     )
     assert "flips" in card["training"]["augmentation"]
     assert "photometric" in card["training"]["augmentation"]
+    assert "clutter behind the parts in 50% of samples" in card["training"]["augmentation"]
     _, end = _weights(tuned.with_suffix(".ckpt"))
     # the card names where the weights came from, and counts the base's hours too
     assert card["training"]["initialised_from"] == str(base_ckpt)
@@ -242,21 +251,30 @@ def test_a_fine_tune_keeps_its_base_and_its_augmentation_through_a_resume(tmp_pa
         (end["cpu_seconds"] + base["cpu_seconds"]) / 3600, abs=2e-3
     )
     assert end["step"] == 6 and end["config"]["dihedral"] is True
-    assert end["config"]["photometric"] is True
+    assert end["config"]["photometric"] is True and end["config"]["backgrounds"] == 0.5
     assert end["init_from"]["step"] == 6
     # a checkpoint written before the option existed was trained without it, and resumes so
     state = torch.load(base_ckpt, map_location="cpu", weights_only=False)
     del state["config"]["dihedral"], state["config"]["photometric"]
+    state["config"].pop("backgrounds")
     old = tmp_path / "old" / "m.ckpt"
     old.parent.mkdir()
     torch.save(state, old)
     train(
         DEFAULT_CATALOG,
         old.with_suffix(".onnx"),
-        _config(tmp_path, resume=str(old), dihedral=True, photometric=True, extend=(2, 1e-3)),
+        _config(
+            tmp_path,
+            resume=str(old),
+            dihedral=True,
+            photometric=True,
+            backgrounds=1.0,
+            extend=(2, 1e-3),
+        ),
     )
     assert _weights(old)[1]["config"]["dihedral"] is False
     assert _weights(old)[1]["config"]["photometric"] is False
+    assert _weights(old)[1]["config"]["backgrounds"] == 0.0
 
 
 def test_the_proxy_voting_loss_finds_the_center_and_weighs_a_vote_by_its_distance():
