@@ -381,6 +381,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         seed=config.seed,
         robi_fraction=config.robi_fraction,
         deadline=stages.deadline - reserve,
+        clock_schedule=True,  # however many steps the minutes hold, the run ends annealed
         init=init,
         photometric=config.photometric,
         backgrounds=config.backgrounds,

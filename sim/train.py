@@ -74,6 +74,7 @@ CHECKPOINT_VERSION = 1
 __all__ = ["TRAIN_SEED_BASE", "TrainConfig", "profile_of", "render_scene", "train"]
 
 
+CLOCK_WARMUP = 0.05  # of the time to the deadline, with TrainConfig.clock_schedule
 THREAD_CHECK_STEPS = 10  # steps between two looks at the cores other processes leave
 
 
@@ -109,6 +110,11 @@ class TrainConfig:
     # the share of training scenes composed from parts rendered alone onto clutter
     # (sim.composite: many times faster to make than a rendered scene); 0: all rendered
     composite: float = 0.0
+    # the learning rate by the clock: warm-up over the first CLOCK_WARMUP of the time to the
+    # deadline, then the cosine over the rest, whatever the number of steps the time holds (a
+    # budget's run ends annealed; by steps, a short run would end near the peak). Onboarding's
+    # budget uses it; a run by steps or a resumable job keeps the schedule by steps
+    clock_schedule: bool = False
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -158,6 +164,15 @@ class TrainConfig:
             return peak * (local + 1) / self.warmup
         frac = min((local - self.warmup) / max(end - start - self.warmup, 1), 1.0)
         return peak * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * frac)))
+
+    def clock_schedule_at(self, frac: float) -> float:
+        """Learning rate at a fraction ``frac`` in [0, 1] of the training's time: linear warm-up
+        over the first CLOCK_WARMUP, then the cosine of :meth:`schedule` to 2% of ``lr``."""
+        frac = float(np.clip(frac, 0.0, 1.0))
+        if frac < CLOCK_WARMUP:
+            return self.lr * max(frac / CLOCK_WARMUP, 0.01)
+        rest = (frac - CLOCK_WARMUP) / (1.0 - CLOCK_WARMUP)
+        return self.lr * (0.02 + 0.98 * 0.5 * (1 + np.cos(np.pi * rest)))
 
 
 # what a resumed run must share with the run that wrote the checkpoint
@@ -725,12 +740,18 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         share.others()  # the first look measures the loop, not the rendering before it
     nets.det.train()
     nets.crop.train()
+    loop_start = time.time()
+    loop_span = max(deadline - loop_start, 1e-3)
     while step < total and time.time() < deadline:
         rng = np.random.default_rng([config.seed, step])
         gen = torch.Generator().manual_seed(int(rng.integers(2**62)))
         det_b = detector_batch(ts, view_rows, n_classes, batch_config, rng)
         crop_b = crop_batch(ts, batch_config, rng, candidates)
-        losses.append(nets.step(det_b, crop_b, config.schedule(step), gen))
+        if config.clock_schedule and np.isfinite(deadline):
+            lr = config.clock_schedule_at((time.time() - loop_start) / loop_span)
+        else:
+            lr = config.schedule(step)
+        losses.append(nets.step(det_b, crop_b, lr, gen))
         step += 1
         if share is not None and step % THREAD_CHECK_STEPS == 0:
             free = share.free()
@@ -773,6 +794,9 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             f"calibration scene_seed({VAL_SEED_BASE}, 0..{config.val_scenes - 1})",
             "steps": step,
             "schedule_steps": config.total_steps,
+            "schedule": "by the clock: warm-up, then a cosine to the deadline"
+            if config.clock_schedule
+            else "by steps: warm-up, then a cosine over schedule_steps",
             "warm_restarts": [list(r) for r in config.restarts],
             "detector_batch": config.batch,
             "crop_batch": config.crop_batch,

@@ -191,6 +191,22 @@ def test_a_warm_restart_repeats_the_schedule_from_its_own_peak():
         config.extended(0, 1e-3)
 
 
+def test_a_schedule_by_the_clock_warms_up_then_anneals_to_the_deadline():
+    from posefuse.sim.train import CLOCK_WARMUP
+
+    config = TrainConfig(lr=2e-3, clock_schedule=True)
+    assert config.clock_schedule_at(0.0) == pytest.approx(2e-5)  # never zero
+    assert config.clock_schedule_at(CLOCK_WARMUP / 2) == pytest.approx(1e-3)
+    assert config.clock_schedule_at(CLOCK_WARMUP) == pytest.approx(2e-3)
+    assert config.clock_schedule_at(1.0) == pytest.approx(2e-3 * 0.02)
+    assert config.clock_schedule_at(7.0) == pytest.approx(2e-3 * 0.02)  # past the deadline
+    after = [config.clock_schedule_at(f) for f in np.linspace(CLOCK_WARMUP, 1.0, 50)]
+    assert all(a >= b for a, b in zip(after, after[1:], strict=False))
+    # halfway through the cosine, half the way down
+    mid = CLOCK_WARMUP + (1 - CLOCK_WARMUP) / 2
+    assert config.clock_schedule_at(mid) == pytest.approx(2e-3 * (0.02 + 0.49))
+
+
 def test_extend_lengthens_a_finished_schedule_and_the_checkpoint_keeps_it(tmp_path):
     out = tmp_path / "m.onnx"
     train(DEFAULT_CATALOG, out, _config(tmp_path))
