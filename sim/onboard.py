@@ -351,6 +351,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 photometric=config.photometric,
                 backgrounds=config.backgrounds,
                 composite=config.composite,
+                tune_min_score=True,
             ),
         ), config
     setup, per_view = pilot_render(catalog_dir)
@@ -382,6 +383,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         robi_fraction=config.robi_fraction,
         deadline=stages.deadline - reserve,
         clock_schedule=True,  # however many steps the minutes hold, the run ends annealed
+        tune_min_score=True,
         init=init,
         photometric=config.photometric,
         backgrounds=config.backgrounds,

@@ -169,6 +169,13 @@ def _onboard_and_serve(
     assert manifest["training_steps"] == steps and manifest["budget_minutes"] is None
     assert str(training.get("initialised_from")).endswith("robi_like.ckpt"), training
     assert set(manifest["validation"]) == {"mixed", "robi"}
+    # the detector's threshold, chosen on the training's calibration renders, is in the card
+    from posefuse.sim.train import MIN_SCORE_CANDIDATES
+
+    card = json.loads((out / "model" / "parts.json").read_text())
+    tuning = card["validation"]["min_score_tuning"]
+    assert [row["min_score"] for row in tuning] == list(MIN_SCORE_CANDIDATES)
+    assert card["two_stage"]["min_score"] in MIN_SCORE_CANDIDATES
     for f in ("catalog/models_info.json", "catalog/obj_000001.ply", "model/parts.onnx"):
         assert (out / f).stat().st_size > 0, f
     assert (out / "contact" / f"{name}.png").stat().st_size > 10_000
