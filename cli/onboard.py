@@ -9,6 +9,7 @@ import argparse
 from pathlib import Path
 
 from posefuse.cli.common import add_command
+from posefuse.cli.train import add_real_camera_options
 from posefuse.estimator.core.errors import PosefuseError
 
 
@@ -140,30 +141,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--from-scratch", action="store_true", help="train the front end from random weights"
     )
-    p.add_argument(
-        "--photometric",
-        action="store_true",
-        help="train with a real camera's exposure, white balance, blur, noise and JPEG drawn "
-        "per sample (for real photographs)",
-    )
-    p.add_argument(
-        "--backgrounds",
-        type=float,
-        default=0.0,
-        metavar="P",
-        help="the share of training samples (both stages) whose background, all that is no "
-        "part, is replaced by procedural clutter (sim.backgrounds: for photographs of parts "
-        "among other things); kept in the checkpoint (default: 0, the bins as rendered)",
-    )
-    p.add_argument(
-        "--composite",
-        type=float,
-        default=0.0,
-        metavar="P",
-        help="the share of training scenes composed from the parts rendered alone, in any "
-        "orientation, onto clutter (sim.composite: many times faster than a rendered scene, "
-        "without a bin's contact and shadows) (default: 0, all rendered)",
-    )
+    add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")
     p.add_argument(
         "--held-instances",

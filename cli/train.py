@@ -155,29 +155,7 @@ def register(subparsers) -> None:
         help="augment with upside-down flips (both stages) and transposes (stage two) besides "
         "mirrors; kept in the checkpoint",
     )
-    p.add_argument(
-        "--photometric",
-        action="store_true",
-        help="draw a real camera's exposure, white balance, tone curve, blur, noise and JPEG "
-        "per training sample (sim.photometric); kept in the checkpoint",
-    )
-    p.add_argument(
-        "--backgrounds",
-        type=float,
-        default=0.0,
-        metavar="P",
-        help="the share of training samples (both stages) whose background, all that is no "
-        "part, is replaced by procedural clutter (sim.backgrounds: for photographs of parts "
-        "among other things); kept in the checkpoint (default: 0, the bins as rendered)",
-    )
-    p.add_argument(
-        "--composite",
-        type=float,
-        default=0.0,
-        metavar="P",
-        help="the share of training scenes composed from parts rendered alone onto clutter "
-        "(sim.composite); kept in the checkpoint (default: 0, all rendered)",
-    )
+    add_real_camera_options(p)
     p.add_argument(
         "--vote-loss",
         type=float,
@@ -270,3 +248,32 @@ def register(subparsers) -> None:
         "type and scene (metal, chrome, oxide, paint, plastic)",
     )
     p.set_defaults(func=_cmd_train)
+
+
+def add_real_camera_options(p: argparse.ArgumentParser) -> None:
+    """The training data's options for real photographs, shared by train and onboard."""
+    p.add_argument(
+        "--photometric",
+        action="store_true",
+        help="draw a real camera's exposure, white balance, tone curve, blur, noise and JPEG "
+        "per training sample (sim.photometric); kept in the checkpoint",
+    )
+    p.add_argument(
+        "--backgrounds",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training samples (both stages) whose background, all that is no "
+        "part, is replaced by procedural clutter (sim.backgrounds: for photographs of parts "
+        "among other things); kept in the checkpoint (default: 0, the bins as rendered)",
+    )
+    p.add_argument(
+        "--composite",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="the share of training scenes composed from the parts rendered alone, in any "
+        "orientation, onto clutter (sim.composite: many times faster than a rendered scene, "
+        "without a bin's contact and shadows); kept in the checkpoint (default: 0, all "
+        "rendered)",
+    )
