@@ -6,15 +6,19 @@ Stages, each timed and written to ``DIR/parts.json``:
    groups or taken from the person's ``--symmetry NAME=SPEC``, a BOP catalog in ``DIR/catalog``
    and a contact sheet per part in ``DIR/contact/NAME.png`` (flagged near-symmetries in red);
 2. templates: the LINE-2D banks, built in parallel into the template cache;
-3. front end: training scenes rendered and the network trained until the budget's deadline, or
+3. validation renders: held-out scenes of both profiles (seeds never used for training), in
+   rounds until enough parts are scored; within a budget they stop where they and their
+   evaluation would take more than a set share of what is left (``sim.onboard_validation``);
+4. front end: training scenes rendered and the network trained until the budget's deadline, or
    for a fixed number of steps on a fixed number of scenes with ``steps`` (the same network on
    any machine, however fast) (``DIR/model/parts.onnx`` and its card);
-4. validation: held-out renders of both profiles (seeds never used for training), the front
-   end's recall and precision, and ADD-sym after 4 and 8 views with the network's detections.
+5. validation: the front end's recall and precision, and ADD-sym after 4 and 8 views with the
+   network's detections, on those renders.
 
-The budget covers the whole command: after the first two stages the rendering of training data
-is sized from a pilot render so that it takes a third of what is left, and training ends early
-enough to leave the validation its measured share.
+The budget covers the whole command: the validation's scenes are rendered before the training,
+so their cost is measured, not guessed; the training data is sized from that measured cost so
+that rendering it takes a third of what is left, and the training ends where the validation's
+run (both passes over its views) still fits.
 """
 
 from __future__ import annotations
@@ -37,28 +41,14 @@ from posefuse.estimator.core.objects import (
 )
 from posefuse.estimator.core.symmetry import detect_symmetries, symmetry_from_spec
 from posefuse.evaluation.eval_points import with_eval_points
+from posefuse.sim.onboard_validation import (
+    VALIDATION_S_PER_VIEW,
+    render_validations,
+    validate,
+)
 
 MANIFEST = "parts.json"
 MANIFEST_VERSION = 1
-VALIDATION_SEED = 880_000  # held-out renders: disjoint from training (sim.train) and test seeds
-# scored parts (visib > 0.75) a validation scene gives at its last view, a first guess of how
-# many scenes the validation renders: the five meshes of ../shared/objects gave 7.9 (mixed) and
-# 9.0 (robi) in onboarding's validation renders; a part set that gives fewer gets more scenes,
-# in rounds sized from what the first gave, up to MAX_HELD_SCENES
-INSTANCES_PER_SCENE = {"mixed": 7.5, "robi": 9.0}
-MAX_HELD_SCENES = 40
-# the network and the estimator on a validation view, besides its render
-VALIDATION_S_PER_VIEW = 0.5
-# the validation's measured time over its estimate from the single-process pilot: 449 s against
-# 324 s for the five meshes of ../shared/objects (26 scenes; two render processes share the
-# cores' memory and clock, and the pilot's scene is one draw of the profile)
-VALIDATION_MARGIN = 1.4
-# within the budget, the validation takes at most this share of what the catalog and templates
-# leave (the rest trains), its target lowered to fit, down to MIN_HELD_INSTANCES parts a profile.
-# The five meshes of ../shared/objects estimate 9.2 of 14.5 min for 100 parts (0.63): they keep
-# them; LM-O's eight household meshes estimate 20 of 14 min and shrink
-VALIDATION_SHARE_MAX = 0.65
-MIN_HELD_INSTANCES = 30
 
 
 @dataclass(frozen=True)
@@ -113,7 +103,7 @@ class Stages:
             if self.budget_s is not None
             else ""
         )
-        head = f"[{k}/4] {name}{': ' + detail if detail else ''}"
+        head = f"[{k}/5] {name}{': ' + detail if detail else ''}"
         self.echo(f"{head}  (elapsed {elapsed / 60:.1f} min{left})")
 
     def end(self, name: str) -> float:
@@ -266,17 +256,25 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
 
     stages.begin(
         3,
+        "validation renders",
+        "held-out scenes of both profiles, rendered first so the training gets what they leave",
+    )
+    rendered = render_validations(out, catalog, config, stages.deadline, echo)
+    stages.end("validation renders")
+
+    stages.begin(
+        4,
         "front end",
         "render training scenes, train until the deadline"
         if config.steps is None
         else f"render {config.train_scenes} training scenes, train {config.steps} steps",
     )
     model_path = out / "model" / "parts.onnx"
-    card, config = _train(out / "catalog", model_path, catalog, config, stages)
+    card = _train(out / "catalog", model_path, catalog, config, rendered, stages)
     stages.end("front end")
 
-    stages.begin(4, "validation", "held-out renders of both profiles, network front end")
-    validation = validate(out, catalog, model_path, config, echo)
+    stages.begin(5, "validation", "the network front end and the estimator on those renders")
+    validation = validate(out, catalog, model_path, config, rendered, echo)
     stages.end("validation")
 
     manifest = {
@@ -300,6 +298,7 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
         "validation_target_parts": (
             None if config.held_scenes is not None else config.held_instances
         ),
+        "validation_fitted_to_budget": any(r.fitted for r in rendered.values()),
         "stage_seconds": stages.seconds,
         "budget_minutes": None if config.steps is not None else config.minutes,
         "training_steps": config.steps,
@@ -329,7 +328,9 @@ def initial_checkpoint(config) -> str | None:
     return None
 
 
-def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages: Stages) -> dict:
+def _train(
+    catalog_dir: Path, model_path: Path, catalog: Catalog, config, rendered: dict, stages: Stages
+) -> dict:
     from posefuse.sim.train import TrainConfig, train
 
     init = initial_checkpoint(config)
@@ -355,25 +356,25 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
                 composite=config.composite,
                 tune_min_score=True,
             ),
-        ), config
-    setup, per_view = pilot_render(catalog_dir)
-    workers = max(config.workers, 1)
-    left = stages.deadline - time.time()
-    config = fitted_validation(config, left, setup, per_view, stages.echo)
-    reserve = validation_seconds(config, setup, per_view)
-    usable = left - reserve
+        )
+    # what the validation still needs once its scenes are rendered: both passes over its views
+    reserve = sum(r.views for r in rendered.values()) * VALIDATION_S_PER_VIEW
+    usable = stages.deadline - reserve - time.time()
     if usable < 30:
         raise PosefuseError(
-            f"--minutes {config.minutes}: {left / 60:.1f} min remain after the catalog and "
-            f"templates, not enough to train and validate (about {reserve / 60:.1f} min of "
-            "validation alone); raise --minutes"
+            f"--minutes {config.minutes}: {usable / 60:.1f} min remain for training once the "
+            f"catalog, templates and validation renders are done and {reserve / 60:.1f} min are "
+            "kept for the validation's run; raise --minutes"
         )
-    # the training scenes' renders take about a third of what is left
-    per_scene = (setup + config.views * per_view) / workers
+    # the training scenes' renders take about a third of what is left; a training scene costs
+    # what a validation scene of these meshes measured, for its number of views
+    scenes = sum(r.scenes for r in rendered.values())
+    per_view = sum(r.render_s for r in rendered.values()) / max(scenes * config.held_views, 1)
+    per_scene = config.views * per_view
     if config.composite > 0:
-        composed = pilot_compose(catalog_dir, config.views) / workers
+        composed = pilot_compose(catalog_dir, config.views) / max(config.workers, 1)
         per_scene = (1 - config.composite) * per_scene + config.composite * composed
-    n_views = max(int(usable / 3 / per_scene) * config.views, 2 * config.views)
+    n_views = max(int(usable / 3 / max(per_scene, 1e-3)) * config.views, 2 * config.views)
     n_scenes = max(n_views // config.views, 2)
     train_config = TrainConfig(
         n_scenes=n_scenes,
@@ -391,123 +392,7 @@ def _train(catalog_dir: Path, model_path: Path, catalog: Catalog, config, stages
         backgrounds=config.backgrounds,
         composite=config.composite,
     )
-    return train(catalog_dir, model_path, train_config), config
-
-
-def fitted_validation(config, left_s: float, setup: float, per_view: float, echo=print):
-    """``config`` with the validation's target lowered so that the validation takes at most
-    VALIDATION_SHARE_MAX of the ``left_s`` seconds the budget has after the catalog and
-    templates (its time estimated by :func:`validation_seconds`), never below
-    MIN_HELD_INSTANCES; unchanged where it fits, where the person fixed the validation
-    (``fit_validation`` False, or ``held_scenes``), or where the target is already that low."""
-    import dataclasses
-
-    reserve = validation_seconds(config, setup, per_view)
-    allowed = VALIDATION_SHARE_MAX * left_s
-    if (
-        not config.fit_validation
-        or config.held_scenes is not None
-        or reserve <= allowed
-        or config.held_instances <= MIN_HELD_INSTANCES
-    ):
-        return config
-    target = config.held_instances
-    while target > MIN_HELD_INSTANCES:  # the scene counts are whole, so step down to fit
-        target = max(MIN_HELD_INSTANCES, int(target * 0.9))
-        fitted = dataclasses.replace(config, held_instances=target)
-        if validation_seconds(fitted, setup, per_view) <= allowed:
-            break
-    needed = config.minutes + (reserve / VALIDATION_SHARE_MAX - left_s) / 60
-    echo(
-        f"  note: a validation of {config.held_instances} parts a profile would take about "
-        f"{reserve / 60:.1f} of the {left_s / 60:.1f} min left; it scores {target} parts a "
-        f"profile instead (--minutes {np.ceil(needed):.0f} for {config.held_instances})"
-    )
-    return fitted
-
-
-def validate(out: Path, catalog: Catalog, model_path: Path, config, echo=print) -> dict:
-    """Front-end recall/precision and ADD-sym at 4 and 8 views on held-out renders."""
-    from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.tracker import MultiViewEstimator
-    from posefuse.evaluation.dataset import load_dataset
-    from posefuse.evaluation.frontend_metrics import score_frontend
-    from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
-    from posefuse.evaluation.scores import evaluate
-
-    figures = {}
-    for k, profile in enumerate(("mixed", "robi")):
-        root = out / "validation" / profile
-        seed = VALIDATION_SEED + config.seed * 10 + k
-        n_scenes, scored = render_validation(catalog, root, profile, seed, config)
-        dataset = load_dataset(root)
-        network = NetworkFrontend(model_path, dataset.catalog, seed=config.seed)
-
-        def detect(view, network=network, dataset=dataset):
-            image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-            return network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
-
-        score = score_frontend(dataset, detect, list(dataset.views()))
-        shared = MultiViewEstimator(dataset.catalog)
-        shared.prepare_templates(workers=config.workers)
-        run = run_dataset(
-            dataset,
-            LabelledNetworkFrontend(dataset, network),
-            show_progress=False,
-            rotation=True,
-            estimator_factory=lambda d=dataset, s=shared: MultiViewEstimator(
-                d.catalog, banks=s.banks()
-            ),
-        )
-        accuracy = {}
-        for n in (4, 8):
-            if run.targets.get(n):
-                report = evaluate(dataset, run.results[n], targets=run.targets[n])
-                total = report.total
-                accuracy[str(n)] = {
-                    "add_sym": total.rate(),
-                    "mssd": total.rate("mssd"),
-                    "ar_mssd": total.ar_mssd,
-                    "precision": total.precision(),
-                    "instances": total.n_instances,
-                }
-        figures[profile] = {
-            "dataset": f"validation/{profile}",
-            "seed": seed,
-            "scenes": n_scenes,
-            "views": config.held_views,
-            "scored_instances": scored,
-            "frontend": {
-                "recall": score.recall,
-                "precision": score.precision,
-                "median_center_error_px": score.median_center_error_px,
-                "instances": score.n_instances,
-            },
-            "views_accuracy": accuracy,
-        }
-        acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
-        echo(
-            f"  {profile} ({n_scenes} scenes, {scored[str(config.held_views)]} parts scored at "
-            f"{config.held_views} views): front end recall {score.recall:.3f}, precision "
-            f"{score.precision:.3f}; {acc}"
-        )
-    return figures
-
-
-def pilot_render(catalog_dir: Path) -> tuple[float, float]:
-    """(seconds to lay out and prepare a scene, seconds to render one of its views) here, in one
-    process: a robi scene (the slower profile: its parts are dropped one by one onto the pile)
-    prepared, then two of its views rendered."""
-    from posefuse.sim.train import TRAIN_SEED_BASE
-    from posefuse.sim.train_data import _cached_catalog, _scene_renderer, render_views
-
-    _cached_catalog(str(catalog_dir))  # loaded once, as each worker has it
-    t0 = time.perf_counter()
-    prepared = _scene_renderer(str(catalog_dir), 0, 2, TRAIN_SEED_BASE + 7, "robi")
-    t1 = time.perf_counter()
-    render_views(*prepared, 0.5)
-    t2 = time.perf_counter()
-    return t1 - t0, (t2 - t1) / 2
+    return train(catalog_dir, model_path, train_config)
 
 
 def pilot_compose(catalog_dir: Path, views: int) -> float:
@@ -519,80 +404,6 @@ def pilot_compose(catalog_dir: Path, views: int) -> float:
     t0 = time.perf_counter()
     compose_scene(str(catalog_dir), 0, views, TRAIN_SEED_BASE + 7, "mixed", 0.5)
     return time.perf_counter() - t0
-
-
-def validation_scenes(config) -> int:
-    """How many scenes the validation is expected to render, both profiles together."""
-    if config.held_scenes is not None:
-        return 2 * config.held_scenes
-    return sum(
-        min(int(np.ceil(config.held_instances / guess)), MAX_HELD_SCENES)
-        for guess in INSTANCES_PER_SCENE.values()
-    )
-
-
-def validation_seconds(config, setup: float, per_view: float) -> float:
-    """The validation's expected wall time: its scenes rendered in ``config.workers`` processes
-    (``setup`` and ``per_view`` from :func:`pilot_render`), and the network and the tracker on
-    every view."""
-    scenes = validation_scenes(config)
-    views = scenes * config.held_views
-    render = (scenes * setup + views * per_view) / max(config.workers, 1)
-    return VALIDATION_MARGIN * (render + views * VALIDATION_S_PER_VIEW)
-
-
-def scored_instances(root: Path, scene_ids, checkpoints: tuple[int, ...]) -> dict[int, int]:
-    """Parts scored (visib > 0.75, as ``evaluation.scores``) in the ``count``-th view of the
-    scenes ``scene_ids`` of a rendered dataset, per count of ``checkpoints``."""
-    counts = dict.fromkeys(checkpoints, 0)
-    for scene_id in scene_ids:
-        info = json.loads((root / "test" / f"{scene_id:06d}" / "scene_gt_info.json").read_text())
-        im_ids = sorted(info, key=int)
-        for n in checkpoints:
-            counts[n] += sum(g["visib_fract"] > 0.75 for g in info[im_ids[n - 1]])
-    return counts
-
-
-def render_validation(
-    catalog: Catalog, root: Path, profile: str, seed: int, config
-) -> tuple[int, dict[str, int]]:
-    """Render a profile's validation scenes into ``root``: ``config.held_scenes`` of them, or
-    rounds of scenes until ``held_instances`` parts are scored at the last view (each round
-    sized from the scenes so far), at most MAX_HELD_SCENES. Returns the scenes and the scored
-    parts per count of views reported (4, 8 and the last)."""
-    from posefuse.sim.scenes import PROFILES
-    from posefuse.sim.synth import SynthConfig, generate_dataset, write_synth_json
-
-    spec = _with_views(PROFILES[profile], config.held_views)
-    last = config.held_views
-    checkpoints = tuple(sorted({n for n in (4, 8) if n <= last} | {last}))
-    done, counts = 0, dict.fromkeys(checkpoints, 0)
-    target = config.held_instances
-    while True:
-        if config.held_scenes is not None:
-            n = config.held_scenes - done
-        else:
-            per_scene = counts[last] / done if done else INSTANCES_PER_SCENE.get(profile, 6.0)
-            missing = target - counts[last]
-            n = int(np.ceil(missing / max(per_scene, 0.5)))
-        n = min(n, MAX_HELD_SCENES - done)
-        if n <= 0:
-            break
-        part = SynthConfig(n_scenes=n, seed=seed, first_scene_id=done, scene=spec, profile=profile)
-        generate_dataset(catalog, root, part, show_progress=False, workers=config.workers)
-        for c, m in scored_instances(root, range(done, done + n), checkpoints).items():
-            counts[c] += m
-        done += n
-        if config.held_scenes is not None or counts[last] >= target:
-            break
-    write_synth_json(root, SynthConfig(n_scenes=done, seed=seed, scene=spec, profile=profile))
-    return done, {str(c): m for c, m in counts.items()}
-
-
-def _with_views(spec, n_views: int):
-    import dataclasses
-
-    return dataclasses.replace(spec, n_views=n_views)
 
 
 @dataclass(frozen=True)

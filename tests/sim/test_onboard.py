@@ -162,8 +162,10 @@ def _onboard_and_serve(
     assert code == 0, text
     manifest = json.loads((out / "parts.json").read_text())
     assert [p["name"] for p in manifest["parts"]] == [name]
-    assert set(manifest["stage_seconds"]) == {"catalog", "templates", "front end", "validation"}
-    assert all(f"[{k}/4]" in text for k in range(1, 5))
+    stages = {"catalog", "templates", "validation renders", "front end", "validation"}
+    assert set(manifest["stage_seconds"]) == stages
+    assert all(f"[{k}/5]" in text for k in range(1, 6))
+    assert manifest["validation_fitted_to_budget"] is False
     training = manifest["training"]
     assert training.get("steps", training.get("iterations")) == steps  # no clock cut it short
     assert manifest["training_steps"] == steps and manifest["budget_minutes"] is None
@@ -243,92 +245,6 @@ def test_extra_onboard_the_real_bracket(tmp_path, capsys, monkeypatch):
         found_within_d=0.5,
         add_sym_below_d=None,
     )
-
-
-def _fake_scenes(per_scene: list[int]):
-    """A stand-in for generate_dataset that writes scene k's scene_gt_info.json with
-    ``per_scene[k]`` parts more than 75% visible in every view (and one barely visible)."""
-    calls = []
-
-    def generate(catalog, root, config, show_progress=True, workers=1):
-        calls.append((config.first_scene_id, config.n_scenes))
-        for scene_id in range(config.first_scene_id, config.first_scene_id + config.n_scenes):
-            folder = Path(root) / "test" / f"{scene_id:06d}"
-            folder.mkdir(parents=True, exist_ok=True)
-            parts = [{"visib_fract": 0.9}] * per_scene[scene_id] + [{"visib_fract": 0.2}]
-            info = {str(im): parts for im in range(config.scene.n_views)}
-            (folder / "scene_gt_info.json").write_text(json.dumps(info))
-        return Path(root)
-
-    return generate, calls
-
-
-def test_validation_renders_scenes_until_enough_parts_are_scored(tmp_path, monkeypatch):
-    from posefuse.sim import onboard, synth
-
-    generate, calls = _fake_scenes([3] * 10 + [30] * 30)
-    monkeypatch.setattr(synth, "generate_dataset", generate)
-    config = onboard.OnboardConfig(held_instances=40)
-    n, scored = onboard.render_validation(None, tmp_path / "v", "mixed", 7, config)
-    # a first round from the guess (40 / 7.5: 6 scenes, 18 parts), then one sized from what the
-    # scenes gave (3 a scene: 22 / 3, 8 more, of which the last four give 30)
-    assert calls == [(0, 6), (6, 8)]
-    assert scored["4"] == scored["8"] == 6 * 3 + 4 * 3 + 4 * 30 and n == 14
-    synth_json = json.loads((tmp_path / "v" / "synth.json").read_text())
-    assert synth_json["n_scenes"] == n and synth_json["seed"] == 7
-    # a part set whose scenes score nothing stops at the cap
-    generate, calls = _fake_scenes([0] * 100)
-    monkeypatch.setattr(synth, "generate_dataset", generate)
-    n, scored = onboard.render_validation(None, tmp_path / "w", "robi", 7, config)
-    assert n == onboard.MAX_HELD_SCENES and scored["8"] == 0
-    # --held-scenes: exactly that many
-    generate, calls = _fake_scenes([0] * 5)
-    monkeypatch.setattr(synth, "generate_dataset", generate)
-    n, _ = onboard.render_validation(
-        None, tmp_path / "x", "mixed", 7, onboard.OnboardConfig(held_scenes=2)
-    )
-    assert n == 2 and calls == [(0, 2)]
-
-
-def test_the_validations_time_is_its_scenes_rendered_in_parallel_and_every_view_run():
-    from posefuse.sim import onboard
-
-    config = onboard.OnboardConfig(held_instances=100, held_views=8, workers=2)
-    # 100 parts at the guesses: ceil(100 / 7.5) + ceil(100 / 9) scenes of 8 views
-    assert onboard.validation_scenes(config) == 14 + 12
-    views = 26 * 8
-    expected = (26 * 15.0 + views * 2.0) / 2 + views * onboard.VALIDATION_S_PER_VIEW
-    expected *= onboard.VALIDATION_MARGIN
-    assert onboard.validation_seconds(config, setup=15.0, per_view=2.0) == pytest.approx(expected)
-    fixed = onboard.OnboardConfig(held_scenes=3, held_views=4, workers=1)
-    assert onboard.validation_scenes(fixed) == 6
-    assert onboard.validation_seconds(fixed, 1.0, 1.0) == pytest.approx(
-        onboard.VALIDATION_MARGIN * (6 + 24 + 24 * 0.5)
-    )
-
-
-def test_a_validation_too_long_for_the_budget_shrinks_to_half_of_what_is_left_and_says_so():
-    from posefuse.sim import onboard
-
-    config = onboard.OnboardConfig(held_instances=100, held_views=8, workers=2)
-    full = onboard.validation_seconds(config, setup=15.0, per_view=2.0)
-    notes = []
-    # room for it: unchanged, nothing said
-    assert onboard.fitted_validation(config, 3 * full, 15.0, 2.0, notes.append) is config
-    assert notes == []
-    left = 1.2 * full  # it would take 83% of what is left
-    fitted = onboard.fitted_validation(config, left, 15.0, 2.0, notes.append)
-    assert onboard.MIN_HELD_INSTANCES <= fitted.held_instances < 100
-    assert onboard.validation_seconds(fitted, 15.0, 2.0) <= onboard.VALIDATION_SHARE_MAX * left
-    assert len(notes) == 1 and f"scores {fitted.held_instances} parts" in notes[0]
-    # never below the floor, however short the budget
-    tiny = onboard.fitted_validation(config, 0.01 * full, 15.0, 2.0, notes.append)
-    assert tiny.held_instances == onboard.MIN_HELD_INSTANCES
-    # a target or a scene count the person chose is kept
-    chosen = onboard.OnboardConfig(held_instances=100, fit_validation=False)
-    assert onboard.fitted_validation(chosen, 0.5 * full, 15.0, 2.0, notes.append) is chosen
-    scenes = onboard.OnboardConfig(held_scenes=20)
-    assert onboard.fitted_validation(scenes, 0.5 * full, 15.0, 2.0, notes.append) is scenes
 
 
 @pytest.mark.parametrize("flag", ["--held-instances", "--held-scenes"])
