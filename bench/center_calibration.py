@@ -25,21 +25,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 from tqdm import tqdm
 
+from posefuse.evaluation.center_calibration import nees_table
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import match_to_truth
 from posefuse.service.resources import DEFAULT_MODEL
-
-TRIM = 0.95  # the share of the smallest NEES the factors are fitted on
-
-
-def _trimmed_chi2_mean(dof: int = 2, keep: float = TRIM) -> float:
-    """The mean of a chi-square variable below its ``keep`` quantile."""
-    q = stats.chi2.ppf(keep, dof)
-    # E[X; X < q] = dof * P(chi2_{dof+2} < q)
-    return dof * stats.chi2.cdf(q, dof + 2) / keep
 
 
 def collect(datasets, model: str) -> list[tuple[float, float]]:
@@ -62,30 +53,7 @@ def collect(datasets, model: str) -> list[tuple[float, float]]:
 
 def table(pairs, edges: list[float]) -> list[dict]:
     """One row per score bin [lo, hi): n, mean, median, trimmed mean NEES and the factor."""
-    scores = np.array([s for s, _ in pairs])
-    nees = np.array([n for _, n in pairs])
-    bounds = [0.0, *edges, 1.0 + 1e-9]
-    rows = []
-    target = _trimmed_chi2_mean()
-    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
-        sel = nees[(scores >= lo) & (scores < hi)]
-        if not len(sel):
-            rows.append({"lo": lo, "hi": hi, "n": 0})
-            continue
-        kept = np.sort(sel)[: max(1, int(np.ceil(TRIM * len(sel))))]
-        trimmed = float(kept.mean())
-        rows.append(
-            {
-                "lo": lo,
-                "hi": min(hi, 1.0),
-                "n": int(len(sel)),
-                "mean": float(sel.mean()),
-                "median": float(np.median(sel)),
-                "trimmed_mean": trimmed,
-                "factor": max(1.0, trimmed / target),
-            }
-        )
-    return rows
+    return nees_table([s for s, _ in pairs], [n for _, n in pairs], edges)
 
 
 def _print(rows, title: str) -> None:

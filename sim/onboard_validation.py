@@ -66,7 +66,7 @@ def render_validations(
             if profile == "mixed":  # the piles get what the bins leave of the other half too
                 limit = clock() + (limit - clock()) / 2
         rendered[profile] = render_validation(
-            catalog, out / "validation" / profile, profile, seed, config, limit, clock
+            catalog, out / "validation" / profile, profile, seed, config, limit, clock, echo
         )
     short = {p: r for p, r in rendered.items() if r.fitted}
     if short:
@@ -175,6 +175,7 @@ def render_validation(
     config,
     until: float | None = None,
     clock=time.time,
+    echo=None,
 ) -> RenderedValidation:
     """Render a profile's validation scenes into ``root``: ``config.held_scenes`` of them, or
     rounds of scenes until ``held_instances`` parts are scored at the last view (each round
@@ -222,6 +223,11 @@ def render_validation(
         for c, m in scored_instances(root, range(done, done + n), checkpoints).items():
             counts[c] += m
         done += n
+        if echo is not None:
+            echo(
+                f"  {profile}: {done} scenes rendered, {counts[last]} parts scored at {last} "
+                f"views ({render_s:.0f} s)"
+            )
         if config.held_scenes is not None or counts[last] >= target:
             fitted = False
             break

@@ -45,6 +45,7 @@ from posefuse.estimator.frontend.network import (
     NetworkFrontend,
     catalog_hash,
 )
+from posefuse.evaluation.center_calibration import DEFAULT_EDGES, factors_by_score, nees_table
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import score_frontend
 from posefuse.sim.backgrounds import Backgrounds
@@ -484,6 +485,7 @@ def _card(
     cov_scale: float,
     extra: dict,
     min_score: float | None = None,
+    cov_by_score: list | None = None,
 ) -> ModelCard:
     two_stage = {
         "crop_model": model_path.stem + "_crop.onnx",
@@ -505,6 +507,7 @@ def _card(
         input_scale=config.input_scale,
         output_stride=DET_STRIDE,
         cov_scale=cov_scale,
+        cov_by_score=tuple((float(u), float(f)) for u, f in cov_by_score or ()),
         kind="two_stage",
         two_stage=two_stage,
         extra=extra,
@@ -534,14 +537,14 @@ def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> 
     return out
 
 
-def _val_matches(fe, val: TrainingSet, catalog) -> tuple[int, int, int, list, list]:
+def _val_matches(fe, val: TrainingSet, catalog) -> tuple[int, int, int, list, list, list]:
     """The front end ``fe`` on every view of the calibration renders ``val``: (parts more than
     75% visible, those a detection of their class lies within 15 px of (one to one), detections,
-    the matched centres' errors in pixels and their 2D NEES)."""
+    the matched centres' errors in pixels, their 2D NEES and their detections' scores)."""
     obj_of_class = {k + 1: obj_id for k, obj_id in enumerate(sorted(catalog))}
     if fe.card.agnostic:  # every row's class is "a part", as are the detections
         obj_of_class = dict.fromkeys(obj_of_class, AGNOSTIC_CLASSES[0][0])
-    nees, errors = [], []
+    nees, errors, scores = [], [], []
     n_true = n_found = n_dets = 0
     rows_of = val.view_instances()
     for i in range(val.n_views):
@@ -563,7 +566,8 @@ def _val_matches(fe, val: TrainingSet, catalog) -> tuple[int, int, int, list, li
                     e = dets[a].center_uv - rows[b][3:5]
                     errors.append(float(np.linalg.norm(e)))
                     nees.append(float(e @ np.linalg.solve(dets[a].center_cov, e)))
-    return n_true, n_found, n_dets, errors, nees
+                    scores.append(float(dets[a].score))
+    return n_true, n_found, n_dets, errors, nees, scores
 
 
 def tune_min_score(
@@ -579,7 +583,7 @@ def tune_min_score(
     table = []
     for t in MIN_SCORE_CANDIDATES:
         fe.two_stage = dataclasses.replace(fe.two_stage, min_score=t)
-        n_true, n_found, n_dets, _, _ = _val_matches(fe, val, catalog)
+        n_true, n_found, n_dets, *_ = _val_matches(fe, val, catalog)
         table.append((t, n_found / max(n_true, 1), n_found / max(n_dets, 1)))
 
     def f1(row):
@@ -600,7 +604,7 @@ def calibrate(model_path: Path, val: TrainingSet, catalog, seed: int = 0) -> tup
     data["voting_cov_scale"] = 1.0
     card_path.write_text(json.dumps(data, indent=2) + "\n")
     fe = NetworkFrontend(model_path, catalog, seed=seed)
-    n_true, n_found, _, errors, nees = _val_matches(fe, val, catalog)
+    n_true, n_found, _, errors, nees, _ = _val_matches(fe, val, catalog)
     scale = float(np.mean(nees) / 2.0) if nees else 1.0
     return scale, {
         "views": int(val.n_views),
@@ -609,6 +613,27 @@ def calibrate(model_path: Path, val: TrainingSet, catalog, seed: int = 0) -> tup
         "median_center_error_px": float(np.median(errors)) if errors else None,
         "mean_nees_before_calibration": float(np.mean(nees)) if nees else None,
     }
+
+
+def calibrate_by_score(
+    model_path: Path, val: TrainingSet, catalog, cov_scale: float, seed: int = 0
+) -> tuple[list, list]:
+    """The card's ``center_cov_by_score`` fitted on the calibration renders ``val``
+    (:func:`posefuse.evaluation.center_calibration.factors_by_score`), the model's card read
+    with ``cov_scale``, and the table it was fitted from. A short fine-tune's centres are far
+    less certain at a low score than at a high one, as the shipped model's are."""
+    card_path = model_path.with_suffix(".json")
+    data = json.loads(card_path.read_text())
+    data["voting_cov_scale"] = cov_scale
+    data.pop("center_cov_by_score", None)
+    card_path.write_text(json.dumps(data, indent=2) + "\n")
+    fe = NetworkFrontend(model_path, catalog, seed=seed)
+    *_, nees, scores = _val_matches(fe, val, catalog)
+    factors = factors_by_score(scores, nees)
+    rows = nees_table(scores, nees, DEFAULT_EDGES)
+    return factors, [
+        {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in rows
+    ]
 
 
 def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) -> dict:
@@ -826,6 +851,11 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         data["two_stage"]["min_score"] = min_score
         card_path.write_text(json.dumps(data, indent=2) + "\n")
     cov_scale, val_metrics = calibrate(model_path, val, catalog, config.seed)
+    cov_by_score = None
+    if config.tune_min_score:  # onboarding: the centres' covariance by score too
+        cov_by_score, val_metrics["center_nees_by_score"] = calibrate_by_score(
+            model_path, val, catalog, cov_scale, config.seed
+        )
     if thresholds is not None:
         val_metrics["min_score_tuning"] = [
             {"min_score": t, "recall": round(r, 4), "precision": round(p, 4)}
@@ -880,6 +910,6 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         "validation": val_metrics,
         **config.extra,
     }
-    card = _card(catalog, config, model_path, cov_scale, extra, min_score)
+    card = _card(catalog, config, model_path, cov_scale, extra, min_score, cov_by_score)
     model_path.with_suffix(".json").write_text(json.dumps(card.to_json(), indent=2) + "\n")
     return card.to_json()

@@ -178,6 +178,10 @@ def _onboard_and_serve(
     tuning = card["validation"]["min_score_tuning"]
     assert [row["min_score"] for row in tuning] == list(MIN_SCORE_CANDIDATES)
     assert card["two_stage"]["min_score"] in MIN_SCORE_CANDIDATES
+    # and the centres' covariance by score, fitted on the same renders, never below 1
+    factors = card["center_cov_by_score"]
+    assert factors[-1][0] == 1.0 and all(f >= 1.0 for _, f in factors), factors
+    assert sum(r["n"] for r in card["validation"]["center_nees_by_score"]) > 0
     for f in ("catalog/models_info.json", "catalog/obj_000001.ply", "model/parts.onnx"):
         assert (out / f).stat().st_size > 0, f
     assert (out / "contact" / f"{name}.png").stat().st_size > 10_000
