@@ -53,7 +53,7 @@ def nees_table(scores: np.ndarray, nees: np.ndarray, edges) -> list[dict]:
                 mean=float(sel.mean()),
                 median=float(np.median(sel)),
                 trimmed_mean=float(kept.mean()),
-                factor=max(1.0, float(kept.mean()) / target),
+                factor=float(max(1.0, kept.mean() / target)),
             )
         rows.append(row)
     return rows
@@ -71,5 +71,5 @@ def factors_by_score(
     for row in reversed(rows):
         fitted = row["factor"] if row["n"] >= min_matches else above
         above = max(above, fitted)
-        out.append([row["hi"], round(above, 3)])
+        out.append([float(row["hi"]), round(float(above), 3)])
     return out[::-1]
