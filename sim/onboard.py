@@ -62,10 +62,10 @@ class OnboardConfig:
     # scored (visib > 0.75) at the last view (8), or ``held_scenes`` scenes when given
     held_instances: int = 100
     held_scenes: int | None = None
-    # the budget's validation may shrink: where the validation of ``held_instances`` parts would
-    # take more than VALIDATION_SHARE_MAX of what the catalog and templates leave, its target is
-    # lowered to fit (never below MIN_HELD_INSTANCES) and the run says so; False (a target the
-    # person chose) keeps it and refuses a budget too small for it
+    # the budget's validation may fall short: its renders stop where they and their evaluation
+    # would take more than VALIDATION_SHARE_MAX of what the catalog and templates leave (never
+    # below MIN_HELD_INSTANCES parts; sim.onboard_validation) and the run says so; False (a
+    # target the person chose) keeps it and refuses a budget too small for it
     fit_validation: bool = True
     held_views: int = 8
     workers: int = 2
