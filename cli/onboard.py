@@ -52,6 +52,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         photometric=args.photometric,
         backgrounds=args.backgrounds,
         composite=args.composite,
+        frozen_backbones=args.frozen_backbones,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -140,6 +141,12 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--from-scratch", action="store_true", help="train the front end from random weights"
+    )
+    p.add_argument(
+        "--frozen-backbones",
+        action="store_true",
+        help="fine-tune the necks and heads only: both stages' backbones keep the initial "
+        "checkpoint's weights (cheaper steps, less to learn)",
     )
     add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")

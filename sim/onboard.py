@@ -83,6 +83,8 @@ class OnboardConfig:
     backgrounds: float = 0.0  # the share of training samples on clutter (sim.backgrounds)
     # the share of training scenes composed from parts rendered alone (sim.composite)
     composite: float = 0.0
+    # the backbones of both stages keep the initial checkpoint's weights (TrainConfig)
+    frozen_backbones: bool = False
 
 
 class Stages:
@@ -354,6 +356,7 @@ def _train(
                 photometric=config.photometric,
                 backgrounds=config.backgrounds,
                 composite=config.composite,
+                frozen_backbones=config.frozen_backbones,
                 tune_min_score=True,
             ),
         )
@@ -391,6 +394,7 @@ def _train(
         photometric=config.photometric,
         backgrounds=config.backgrounds,
         composite=config.composite,
+        frozen_backbones=config.frozen_backbones,
     )
     return train(catalog_dir, model_path, train_config)
 

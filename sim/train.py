@@ -121,6 +121,9 @@ class TrainConfig:
     # the detector's threshold chosen on the calibration renders (tune_min_score) and written
     # into the card; False: the default TwoStageConfig.min_score. Onboarding uses it
     tune_min_score: bool = False
+    # both stages' backbones keep the weights they start with (``init``): a step trains the
+    # necks and heads only, and no gradient flows back through the backbones
+    frozen_backbones: bool = False
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -204,6 +207,7 @@ _STREAM_FIELDS = (
     "photometric",
     "backgrounds",
     "composite",
+    "frozen_backbones",
 )
 
 
@@ -217,6 +221,7 @@ _OPTIONAL_STREAM_FIELDS = (
     "input_scale",
     "backgrounds",
     "composite",
+    "frozen_backbones",
 )
 
 
@@ -241,7 +246,10 @@ class _Nets:
         if config.bf16:
             self.det = self.det.to(memory_format=torch.channels_last)
             self.crop = self.crop.to(memory_format=torch.channels_last)
-        params = list(self.det.parameters()) + list(self.crop.parameters())
+        if config.frozen_backbones:
+            for p in [*self.det.backbone.parameters(), *self.crop.backbone.parameters()]:
+                p.requires_grad_(False)
+        params = [p for p in [*self.det.parameters(), *self.crop.parameters()] if p.requires_grad]
         self.opt = torch.optim.AdamW(params, lr=config.lr, weight_decay=1e-4)
         self.mean = torch.tensor(MEAN).view(1, 3, 1, 1)
         self.std = torch.tensor(STD).view(1, 3, 1, 1)
@@ -310,6 +318,15 @@ class _Nets:
             "vec": float(loss_vec.detach()),
             "vote": float(loss_vote.detach()),
         }
+
+    def train_mode(self) -> None:
+        """Both stages in training mode, but frozen backbones (``frozen_backbones``), whose
+        batch norms keep their statistics: their features stay what the initial weights made."""
+        self.det.train()
+        self.crop.train()
+        if self.config.frozen_backbones:
+            self.det.backbone.eval()
+            self.crop.backbone.eval()
 
     def state(self) -> dict:
         """Weights and the optimizer's moments in float32: about 6 MB for both stages, small
@@ -673,6 +690,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             backgrounds=float(stored.get("backgrounds", 0.0)),
             composite=float(stored.get("composite", 0.0)),
             input_scale=float(stored.get("input_scale", INPUT_SCALE)),
+            frozen_backbones=bool(stored.get("frozen_backbones", False)),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -809,8 +827,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     bar = tqdm(total=total, initial=step, desc="train", unit="step")
     if share is not None:
         share.others()  # the first look measures the loop, not the rendering before it
-    nets.det.train()
-    nets.crop.train()
+    nets.train_mode()
     loop_start = time.time()
     loop_span = max(deadline - loop_start, 1e-3)
     while step < total and time.time() < deadline:
@@ -837,7 +854,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         if time.time() - last_ckpt > config.checkpoint_minutes * 60 and step < total:
             nets.det.eval(), nets.crop.eval()
             checkpoint(final=False)
-            nets.det.train(), nets.crop.train()
+            nets.train_mode()
             last_ckpt = time.time()
     bar.close()
     nets.det.eval()
@@ -893,6 +910,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             "render_minutes_this_run": round(render_minutes, 1),
             "seed": config.seed,
             "bf16_autocast": config.bf16,
+            **({"frozen_backbones": True} if config.frozen_backbones else {}),
             "proxy_voting_loss_weight": config.vote_loss or 0.0,
             "augmentation": "mirrors"
             + (", flips and transposes" if config.dihedral else "")

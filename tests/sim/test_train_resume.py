@@ -360,3 +360,24 @@ def test_another_input_scale_is_the_cards_and_the_front_end_runs_at_it(tmp_path)
         _config(tmp_path, resume=str(out.with_suffix(".ckpt")), extend=(1, 1e-3)),
     )
     assert _weights(out.with_suffix(".ckpt"))[1]["config"]["input_scale"] == 0.625
+
+
+def test_frozen_backbones_keep_their_weights_and_statistics_while_the_heads_learn(tmp_path):
+    first = tmp_path / "first"
+    train(DEFAULT_CATALOG, first / "m.onnx", _config(tmp_path))
+    w_init, _ = _weights(first / "m.ckpt")
+    tuned = tmp_path / "tuned"
+    card = train(
+        DEFAULT_CATALOG,
+        tuned / "m.onnx",
+        _config(tmp_path, init=str(first / "m.ckpt"), frozen_backbones=True, seed=1),
+    )
+    w_tuned, state = _weights(tuned / "m.ckpt")
+    assert state["config"]["frozen_backbones"] is True
+    assert card["training"]["frozen_backbones"] is True
+    backbone = [k for k in w_init if ".backbone." in f".{k}"]
+    assert backbone, sorted(w_init)[:5]
+    for k in backbone:  # weights and batch-norm statistics alike
+        assert torch.equal(w_tuned[k], w_init[k]), k
+    heads = [k for k in w_init if ".backbone." not in f".{k}" and w_init[k].is_floating_point()]
+    assert sum(not torch.equal(w_tuned[k], w_init[k]) for k in heads) > 4
