@@ -242,6 +242,10 @@ def so3_log(R: np.ndarray) -> np.ndarray:
         (..., 3) rotation vector with norm in [0, pi].
     """
     R = _as_array(R, (3, 3), "so3_log: R")
+    if R.ndim == 2:  # one matrix, the common case in the estimator's loops: scalar maths
+        w = _so3_log_one(R)
+        if w is not None:
+            return w
     s = vee(R)
     sin_t = np.linalg.norm(s, axis=-1)
     cos_t = np.clip(0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0), -1.0, 1.0)
@@ -268,6 +272,23 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     sign = np.where(dot != 0.0, np.sign(dot), np.where(largest < 0.0, -1.0, 1.0))
     w_pi = axis * (sign * theta)[..., None]
     return np.where(near_pi, w_pi, w_generic)
+
+
+def _so3_log_one(R: np.ndarray) -> np.ndarray | None:
+    """:func:`so3_log` of one (3, 3) matrix below the near-pi branch, the coefficients in
+    Python floats (equal to rounding); None near pi, left to the batched path."""
+    x = 0.5 * (float(R[2, 1]) - float(R[1, 2]))
+    y = 0.5 * (float(R[0, 2]) - float(R[2, 0]))
+    z = 0.5 * (float(R[1, 0]) - float(R[0, 1]))
+    cos_t = min(1.0, max(-1.0, 0.5 * (float(R[0, 0]) + float(R[1, 1]) + float(R[2, 2]) - 1.0)))
+    if cos_t < _NEAR_PI_COS:
+        return None
+    theta = math.atan2(math.sqrt(x * x + y * y + z * z), cos_t)
+    if theta < _SMALL_ANGLE:
+        factor = _series_scalar(theta * theta, _INV_A_SERIES)
+    else:
+        factor = theta / math.sin(theta)
+    return np.array([x * factor, y * factor, z * factor])
 
 
 def so3_left_jacobian(w: np.ndarray) -> np.ndarray:

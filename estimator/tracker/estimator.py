@@ -56,6 +56,7 @@ from posefuse.estimator.translation.gaussian import (
     bbox_diagonal_ratio,
     predict,
 )
+from posefuse.estimator.verification.kernels import compile_kernels
 from posefuse.estimator.verification.refinement import RefineConfig
 
 
@@ -340,7 +341,10 @@ class MultiViewEstimator:
 
     def warm_up(self) -> None:
         """Everything a class needs before its first frame: its template bank (built or loaded)
-        and its box-size ratio (~50 ms a class), so no frame pays for them."""
+        and its box-size ratio (~50 ms a class), and the verification's compiled kernels, so no
+        frame pays for them."""
+        if self.config.verification.enabled:
+            compile_kernels()
         for obj_id in self.catalog:
             self.matcher(obj_id)
             self._size_ratio(obj_id)

@@ -24,6 +24,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from posefuse.estimator.verification import kernels
 from posefuse.estimator.verification.edge_maps import EdgeConfig
 
 __all__ = [
@@ -319,7 +320,7 @@ def _facing(edges: ModelEdges, c_obj: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def pose_edges(
-    edges: ModelEdges, R_cam_obj: np.ndarray, t_cam_obj: np.ndarray
+    edges: ModelEdges, R_cam_obj: np.ndarray, t_cam_obj: np.ndarray, compiled: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The edge samples that show at each of N poses, object frame.
 
@@ -328,25 +329,35 @@ def pose_edges(
     and one of them faces the camera.
 
     Args:
-        R_cam_obj: (N, 3, 3). t_cam_obj: (N, 3) metres.
+        R_cam_obj: (N, 3, 3). t_cam_obj: (N, 3) metres. compiled: the faces by
+        :func:`estimator.verification.kernels.facing_sets`, else by numpy (the reference).
     Returns:
         points: (N, P, 3); directions: (N, P, 3) unit, along the edge; active: (N, P) bool, on
         the contour or a visible crease; contour: (N, P) bool, on the occluding contour.
     """
     N, P = len(R_cam_obj), len(edges.points)
     c_obj = -np.einsum("nji,nj->ni", R_cam_obj, t_cam_obj)  # camera centre, object frame
-    faces, turns_away = _facing(edges, c_obj)
-    contour = (faces[..., 0] & turns_away[..., 1]) | (turns_away[..., 0] & faces[..., 1])
-    active = contour | (edges.crease[None] & (faces[..., 0] | faces[..., 1]))
-    if edges.mesh is not None and edges.occlusion is not None:
+    table = edges.occlusion if edges.mesh is not None else None
+    if compiled:
+        keys, centres = table.viewpoints(c_obj) if table is not None else ([], np.zeros((0, 3)))
+        normals_t, offsets = edges._facing_terms
+        contour, active, shared = kernels.facing_sets(
+            normals_t, offsets, edges.crease, c_obj, centres
+        )
+    else:
+        faces, turns_away = _facing(edges, c_obj)
+        contour = (faces[..., 0] & turns_away[..., 1]) | (turns_away[..., 0] & faces[..., 1])
+        active = contour | (edges.crease[None] & (faces[..., 0] | faces[..., 1]))
+        if table is not None:
+            keys, centres = table.viewpoints(c_obj)
+            faces_there, _ = _facing(edges, centres)
+            shared = active & (faces_there[..., 0] | faces_there[..., 1])
+    if table is not None:
         # hidden by the part itself, from the table of viewpoints, where the sample turns a
         # face to the viewpoint as well; a sample that does not (a face nearly edge-on to the
         # camera, turned away from a viewpoint a degree or two off) would send the
         # viewpoint's ray into the part, and casts its own ray from the camera instead
-        keys, centres = edges.occlusion.viewpoints(c_obj)
-        faces_there, _ = _facing(edges, centres)
-        shared = active & (faces_there[..., 0] | faces_there[..., 1])
-        hidden = edges.occlusion.hidden(keys, centres, shared, edges.occlusion_columns)
+        hidden = table.hidden(keys, centres, shared, edges.occlusion_columns)
         n_idx, p_idx = np.nonzero(active & ~shared)
         if len(n_idx):
             hidden[n_idx, p_idx] = _hidden_from(

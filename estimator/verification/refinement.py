@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp, so3_log
+from posefuse.estimator.verification import kernels
 from posefuse.estimator.verification.edge_maps import EdgeView, sample_maps
 from posefuse.estimator.verification.model_edges import ModelEdges, pose_edges, project_shown
 
@@ -89,6 +90,9 @@ class RefineConfig:
     # every n-th edge sample is read (ModelEdges.subset), each standing for n samples of the
     # full sampling: a view counts at most points_per_view samples' information either way
     sample_stride: int = 1
+    # the data term by the compiled kernel (estimator.verification.kernels), or by the numpy
+    # code it replaced (the reference, equal to rounding)
+    compiled: bool = True
 
     def __post_init__(self) -> None:
         if (
@@ -269,12 +273,12 @@ def _data_term(
 
 
 def _showing(
-    edges: ModelEdges, stack: _ViewStack, R: np.ndarray, t: np.ndarray
+    edges: ModelEdges, stack: _ViewStack, R: np.ndarray, t: np.ndarray, compiled: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """The samples showing at (R, t) in every view: (contour, crease), each (V, P) bool."""
     R_cam = stack.R_cw @ R
     t_cam = stack.R_cw @ t + stack.t_cw
-    _, _, active, contour = pose_edges(edges, R_cam, t_cam)
+    _, _, active, contour = pose_edges(edges, R_cam, t_cam, compiled)
     return contour, active & ~contour
 
 
@@ -296,12 +300,73 @@ def _linearize(
     instead of the ones showing at (R, t): within one step the objective then compares like
     with like. All views' samples are read in one call."""
     if sets is None:
-        sets = _showing(edges, stack, R, t)
-    reads = _read(edges, stack, R, t, sets[0] | sets[1], sets[0], truncate, bins, mask_weight)
-    cost, H, g = _data_term(
-        edges, stack, reads, sets, truncate, crease_weight, mask_weight, config, want_jacobian
-    )
+        sets = _showing(edges, stack, R, t, config.compiled)
+    scoring = EdgeScoring(truncate, bins, crease_weight, mask_weight)
+    cost, H, g = _data(edges, stack, R, t, sets, scoring, config, want_jacobian)
     return cost, H, g, sets
+
+
+def _data(
+    edges: ModelEdges,
+    stack: _ViewStack,
+    R: np.ndarray,
+    t: np.ndarray,
+    sets: tuple[np.ndarray, np.ndarray],
+    scoring: EdgeScoring,
+    config: RefineConfig,
+    want_jacobian: bool = True,
+    reads: _Reads | None = None,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """The data term's cost, information H (6, 6) and gradient g (6,) at (R, t) of the samples
+    ``sets`` (contour, crease), by the compiled kernel (``config.compiled``) or by numpy from
+    ``reads`` that hold them (None: read now)."""
+    if config.compiled:
+        return kernels.data_term(
+            edges.points,
+            edges.directions,
+            sets[0],
+            sets[1],
+            R,
+            t,
+            stack.R_cw,
+            stack.t_cw,
+            stack.K,
+            stack.maps,
+            stack.has_mask,
+            scoring.bins,
+            float(scoring.truncate_px),
+            float(scoring.crease_weight),
+            float(scoring.mask_weight),
+            config.sample_stride,
+            float(config.points_per_view),
+            float(config.sigma_px),
+            float(config.huber_px),
+            want_jacobian,
+        )
+    if reads is None:
+        shown, contour = sets[0] | sets[1], sets[0]
+        reads = _read(
+            edges,
+            stack,
+            R,
+            t,
+            shown,
+            contour,
+            scoring.truncate_px,
+            scoring.bins,
+            scoring.mask_weight,
+        )
+    return _data_term(
+        edges,
+        stack,
+        reads,
+        sets,
+        scoring.truncate_px,
+        scoring.crease_weight,
+        scoring.mask_weight,
+        config,
+        want_jacobian,
+    )
 
 
 def accepts_translation(
@@ -384,7 +449,7 @@ def refine_pose(
     R_start, t_start = start.R_world_obj, start.t_world_obj
     t_prior, cov_t_prior, cov_R_prior = prior.t_world_obj, prior.cov_t, prior.cov_R
     truncate_px, bins = scoring.truncate_px, scoring.bins
-    crease_weight, mask_weight = scoring.crease_weight, scoring.mask_weight
+    mask_weight = scoring.mask_weight
     edges = edges.subset(config.sample_stride)
     floor = np.deg2rad(config.rotation_floor_deg) ** 2
     w_eig, V = np.linalg.eigh(0.5 * (cov_R_prior + cov_R_prior.T))
@@ -393,24 +458,19 @@ def refine_pose(
 
     stack = _ViewStack.of(views)
 
+    def union_reads(R, t, *sets_list):
+        """The numpy path's reads at (R, t) of every sample of ``sets_list`` (each (contour,
+        crease)), in one pass; None compiled, where each objective reads what it scores."""
+        if config.compiled:
+            return None
+        shown = np.logical_or.reduce([s_ for sets_ in sets_list for s_ in sets_])
+        contour = np.logical_or.reduce([sets_[0] for sets_ in sets_list])
+        return _read(edges, stack, R, t, shown, contour, truncate_px, bins, mask_weight)
+
     def objective(R, t, sets, reads=None, want_jacobian=True):
         """The cost, information and gradient at (R, t) of the samples ``sets``, data and
-        priors, from ``reads`` that hold them (None: read them now)."""
-        if reads is None:
-            reads = _read(
-                edges, stack, R, t, sets[0] | sets[1], sets[0], truncate_px, bins, mask_weight
-            )
-        cost, H, g = _data_term(
-            edges,
-            stack,
-            reads,
-            sets,
-            truncate_px,
-            crease_weight,
-            mask_weight,
-            config,
-            want_jacobian,
-        )
+        priors, from ``reads`` that hold them (None: read them now; not used compiled)."""
+        cost, H, g = _data(edges, stack, R, t, sets, scoring, config, want_jacobian, reads)
         r_t = t - t_prior
         r_R = so3_log(R @ R_start.T)
         cost += float(r_t @ info_t @ r_t + r_R @ info_R @ r_R)
@@ -421,7 +481,7 @@ def refine_pose(
         return cost, H, g
 
     R, t = R_start.copy(), np.asarray(t_start, float).copy()
-    sets = _showing(edges, stack, R, t)
+    sets = _showing(edges, stack, R, t, config.compiled)
     if warm is None:
         cost, H, g = objective(R, t, sets)
         cost_start = cost
@@ -429,11 +489,9 @@ def refine_pose(
         # a warm start (the last result of the same hypothesis), taken where it costs less. It
         # mostly does, so its Jacobian is taken at once and the start's only if the start wins
         R_w, t_w = np.asarray(warm.R_world_obj, float), np.asarray(warm.t_world_obj, float)
-        sets_w = _showing(edges, stack, R_w, t_w)
+        sets_w = _showing(edges, stack, R_w, t_w, config.compiled)
         warm = objective(R_w, t_w, sets_w)
-        reads = _read(
-            edges, stack, R, t, sets[0] | sets[1], sets[0], truncate_px, bins, mask_weight
-        )
+        reads = union_reads(R, t, sets)
         cost_start, _, _ = objective(R, t, sets, reads, want_jacobian=False)
         if warm[0] < cost_start:
             R, t, sets = R_w, t_w, sets_w
@@ -458,18 +516,8 @@ def refine_pose(
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]
         # the step is judged on the samples it was computed from, then the set is renewed:
         # both sets are read in one pass, the step mostly holding
-        sets_new = _showing(edges, stack, R_new, t_new)
-        reads = _read(
-            edges,
-            stack,
-            R_new,
-            t_new,
-            sets[0] | sets[1] | sets_new[0] | sets_new[1],
-            sets[0] | sets_new[0],
-            truncate_px,
-            bins,
-            mask_weight,
-        )
+        sets_new = _showing(edges, stack, R_new, t_new, config.compiled)
+        reads = union_reads(R_new, t_new, sets, sets_new)
         cost_same, _, _ = objective(R_new, t_new, sets, reads, want_jacobian=False)
         if cost_same < cost:
             before = cost

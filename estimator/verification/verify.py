@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp
 from posefuse.estimator.rotation.mixture import closest_equivalents
+from posefuse.estimator.verification import kernels
 from posefuse.estimator.verification.edge_maps import EdgeConfig, EdgeView, sample_maps
 from posefuse.estimator.verification.model_edges import (
     ModelEdges,
@@ -93,6 +94,9 @@ class VerificationConfig:
     # tuning sets (procedural mixed 4242 and robi 4343 with the network, the five meshes of
     # ../shared/objects rendered with seed 6161 with the oracle; docs/verification.md)
     ambiguous_odds: float = 0.05
+    # the chamfer sums by the compiled kernel (estimator.verification.kernels), or by the numpy
+    # code it replaced (the reference, equal to rounding)
+    compiled: bool = True
 
     def __post_init__(self) -> None:
         if self.sample_stride < 1 or self.max_views < 1:
@@ -389,8 +393,61 @@ def score_hypotheses(
     R_cam = np.einsum("vij,hjk->hvik", R_cw, R_world_obj).reshape(-1, 3, 3)
     t_cam = (np.einsum("vij,hj->hvi", R_cw, t_world_obj) + t_cw).reshape(-1, 3)
     K = np.broadcast_to(np.array([v.K_roi for v in views]), (H, V, 3, 3)).reshape(-1, 3, 3)
-    _, _, active, contour = pose_edges(edges, R_cam, t_cam)
-    # only the samples that show are projected and read: pose n = h * V + v
+    _, _, active, contour = pose_edges(edges, R_cam, t_cam, config.compiled)
+    ec = config.edges
+    view_of = np.tile(np.arange(V), H)  # pose n = h * V + v
+    with_mask = np.array([v.mask_dt is not None for v in views])
+    use_mask = bool(with_mask.any()) and config.mask_weight > 0
+    enough = edges.samples_for(config.min_points) - 1e-9
+    if config.compiled:
+        dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
+        masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
+        sums, counts = kernels.chamfer_costs(
+            edges.points,
+            edges.directions,
+            active,
+            contour,
+            R_cam,
+            t_cam,
+            np.ascontiguousarray(K),
+            view_of,
+            dcdt,
+            masks,
+            with_mask & use_mask,
+            ec.bins,
+            float(ec.truncate_px),
+        )
+
+        def mean_of(total: np.ndarray, n: np.ndarray) -> np.ndarray:
+            return np.where(n >= enough, total / np.maximum(n, 1) / ec.truncate_px, 1.0)
+
+        cost = mean_of(sums[:, 0], counts[:, 0]) + config.crease_weight * mean_of(
+            sums[:, 1], counts[:, 1]
+        )
+        if use_mask:
+            cost += config.mask_weight * with_mask[view_of] * mean_of(sums[:, 2], counts[:, 0])
+    else:
+        cost = _chamfer_costs_numpy(edges, views, active, contour, R_cam, t_cam, K, config)
+    if config.coverage_weight > 0 and edges.mesh is not None:
+        points = [v.mask_points if v.mask_points is not None else np.zeros((0, 2)) for v in views]
+        cost += config.coverage_weight * silhouette_misses(edges.mesh, R_cam, t_cam, K, points * H)
+    return cost.reshape(H, V)
+
+
+def _chamfer_costs_numpy(
+    edges: ModelEdges,
+    views: list[EdgeView],
+    active: np.ndarray,
+    contour: np.ndarray,
+    R_cam: np.ndarray,
+    t_cam: np.ndarray,
+    K: np.ndarray,
+    config: VerificationConfig,
+) -> np.ndarray:
+    """(N,) the chamfer part of :func:`score_hypotheses` by numpy, pose n = h * V + v: the
+    reference of :func:`estimator.verification.kernels.chamfer_costs`."""
+    V, N = len(views), len(R_cam)
+    # only the samples that show are projected and read
     pose, sample, uv, angle = project_shown(edges, active, R_cam, t_cam, K)
     on_contour = contour[pose, sample]
     ec = config.edges
@@ -400,7 +457,6 @@ def score_hypotheses(
     d, _ = sample_maps(
         dcdt.reshape(-1, *dcdt.shape[2:]), view_of * ec.bins + b, uv, ec.truncate_px, False
     )
-    N = H * V
 
     def mean_or_one(values: np.ndarray, use: np.ndarray) -> np.ndarray:
         """(N,) per pose: the mean of ``values`` over its ``use`` samples, truncated to [0, 1];
@@ -415,11 +471,8 @@ def score_hypotheses(
     if with_mask.any() and config.mask_weight > 0:
         masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
         dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px, False)
-        cost += config.mask_weight * np.tile(with_mask, H) * mean_or_one(dm, on_contour)
-    if config.coverage_weight > 0 and edges.mesh is not None:
-        points = [v.mask_points if v.mask_points is not None else np.zeros((0, 2)) for v in views]
-        cost += config.coverage_weight * silhouette_misses(edges.mesh, R_cam, t_cam, K, points * H)
-    return cost.reshape(H, V)
+        cost += config.mask_weight * np.tile(with_mask, N // V) * mean_or_one(dm, on_contour)
+    return cost
 
 
 def hypotheses(

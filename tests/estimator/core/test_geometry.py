@@ -120,6 +120,16 @@ def test_exp_of_one_vector_equals_the_batched_path(w, scale):
 
 
 @FAST
+@given(rotvecs(), st.sampled_from([1.0, 1e-3, 1e-9]))
+def test_log_of_one_matrix_equals_the_batched_path(w, scale):
+    # one (3, 3) matrix takes a scalar path below the near-pi branch (cos < -1/2, left to the
+    # batch path); both give the same vector
+    R = g.so3_exp(np.asarray(w) * scale)
+    one, batched = g.so3_log(R), g.so3_log(R[None])[0]
+    np.testing.assert_allclose(one, batched, rtol=0, atol=1e-15 * max(1.0, np.linalg.norm(w)))
+
+
+@FAST
 @given(unit_axes(), st.sampled_from([1e-12, 1e-8, 1e-4, 0.01]))
 def test_log_tiny_angles_relative_accuracy(axis, angle):
     w = axis * angle
