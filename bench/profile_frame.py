@@ -240,14 +240,29 @@ def main(argv: list[str] | None = None) -> int:
         help="a verification setting, as posefuse run-dataset takes it (repeat for several), "
         "e.g. keyframe_deg=0 to verify at every view",
     )
+    parser.add_argument(
+        "--numpy",
+        action="store_true",
+        help="the verification and refinement by the numpy code the compiled kernels replaced "
+        "(estimator.verification.kernels), to compare",
+    )
     args = parser.parse_args(argv)
+    from dataclasses import replace
+
     from posefuse.cli.run import tracker_config, verification_settings
 
     config = tracker_config(verification=verification_settings(args.verification))
+    if args.numpy:
+        config = replace(
+            config,
+            verification=replace(config.verification, compiled=False),
+            refinement=replace(config.refinement, compiled=False),
+        )
     r = profile(args.dataset, args.scene, args.repeat, args.threads, config)
     print(
         f"{args.dataset} scenes {args.scene}: {r['frames']} frames, "
         f"{r['objects_per_view']:.1f} objects per view"
+        + (", the step by numpy" if args.numpy else ", the step compiled")
     )
     print(f"{'stage':<20} {'ms/frame':>9}")
     for s in STAGES:
