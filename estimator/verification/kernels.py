@@ -11,7 +11,8 @@ thousand samples, so their overhead and temporaries were most of its time. One p
 (``python -m posefuse.bench.profile_frame --numpy`` prints the step both ways). The sums
 run in another order than numpy's pairwise ones, so results agree to rounding, not to the bit.
 
-The kernels are compiled on first use and cached on disk beside this module (``cache=True``);
+The kernels are compiled on first use and cached on disk beside this module (``cache=True``; or
+in the user's cache folder, or nowhere where neither can be written);
 :func:`compile_kernels` compiles them ahead of the first frame (``MultiViewEstimator.warm_up``).
 """
 
@@ -25,7 +26,16 @@ from numba import njit
 __all__ = ["chamfer_costs", "compile_kernels", "data_term", "facing_sets"]
 
 
-@njit(cache=True, nogil=True, inline="always")
+def _compiled(fn):
+    """``fn`` compiled, kept in numba's disk cache (beside this module, or the user's cache
+    folder); where neither can be written, compiled anew in each process instead of failing."""
+    try:
+        return njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
+        return njit(nogil=True)(fn)
+
+
+@njit(nogil=True, inline="always")
 def _matmul3(X, Y):
     """(3, 3) X @ Y, written out (numba's ``@`` calls BLAS, slow for 3 x 3)."""
     out = np.empty((3, 3))
@@ -35,7 +45,7 @@ def _matmul3(X, Y):
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _project(point, direction, A, b, bins):
     """A sample's pixel (u, v) and its edge's orientation bin: q = A p + b (A = K R, b = K t),
     uv = q_xy / q_z, the direction d turned to dq = A d and d(uv) ~ dq_xy - uv dq_z."""
@@ -52,7 +62,7 @@ def _project(point, direction, A, b, bins):
     return u, v, b_
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(nogil=True, inline="always")
 def _sample(maps, channel, u, v, truncate):
     """Bilinear read of uint8 map ``channel`` at (u, v), in pixels, and its gradient
     (:func:`estimator.verification.edge_maps.sample_maps`, one sample)."""
@@ -74,7 +84,7 @@ def _sample(maps, channel, u, v, truncate):
     return value, du, dv
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def data_term(
     points,
     directions,
@@ -196,7 +206,7 @@ def data_term(
     return cost, H, g
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def chamfer_costs(
     points,
     directions,
@@ -251,7 +261,7 @@ def chamfer_costs(
     return sums, counts
 
 
-@njit(cache=True, nogil=True)
+@_compiled
 def facing_sets(normals_t, offsets, crease, c_obj, centres):
     """Which samples show at N camera centres (:func:`model_edges.pose_edges` before the
     occlusion test; :func:`model_edges._facing` for each face): a face turns towards a centre

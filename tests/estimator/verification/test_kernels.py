@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_refinement import _smooth_views, _tube_refinement
@@ -105,3 +106,21 @@ def test_a_compiled_refinement_ends_where_the_numpy_one_does(robi_catalog):
     np.testing.assert_allclose(fast.t_world_obj, ref.t_world_obj, rtol=0, atol=1e-12)
     np.testing.assert_allclose(fast.cov, ref.cov, rtol=1e-8, atol=1e-20)
     np.testing.assert_allclose(fast.cost, ref.cost, rtol=1e-12)
+
+
+def test_a_kernel_with_nowhere_to_cache_is_compiled_all_the_same(monkeypatch):
+    """Where numba finds no folder to keep its cache in (a read-only install, no home), a
+    kernel is compiled in the process instead of failing at import."""
+    import numba.core.caching
+    from numba import njit
+
+    from posefuse.estimator.verification.kernels import _compiled
+
+    monkeypatch.setattr(numba.core.caching.CacheImpl, "_locator_classes", [])
+
+    def twice(x):
+        return 2 * x
+
+    with pytest.raises(RuntimeError, match="no locator"):
+        njit(cache=True)(twice)
+    assert _compiled(twice)(21) == 42
