@@ -514,13 +514,16 @@ def refine_pose(
         delta = -np.linalg.solve(A, g)
         small = np.linalg.norm(delta[3:]) < step_tol_rad and np.linalg.norm(delta[:3]) < step_tol_m
         R_new, t_new = so3_exp(delta[3:]) @ R, t + delta[:3]
-        # the step is judged on the samples it was computed from, then the set is renewed:
-        # both sets are read in one pass, the step mostly holding
-        sets_new = _showing(edges, stack, R_new, t_new, config.compiled)
-        reads = union_reads(R_new, t_new, sets, sets_new)
+        # the step is judged on the samples it was computed from, then the set is renewed. By
+        # numpy both sets are read in one pass, the step mostly holding; compiled, each
+        # objective reads its own, and the new set is made only for a step that holds
+        sets_new = None if config.compiled else _showing(edges, stack, R_new, t_new, False)
+        reads = None if config.compiled else union_reads(R_new, t_new, sets, sets_new)
         cost_same, _, _ = objective(R_new, t_new, sets, reads, want_jacobian=False)
         if cost_same < cost:
             before = cost
+            if sets_new is None:
+                sets_new = _showing(edges, stack, R_new, t_new, True)
             R, t, sets = R_new, t_new, sets_new
             cost, H, g = objective(R, t, sets, reads)
             lam = max(lam / 3, 1e-7)
