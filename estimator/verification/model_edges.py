@@ -341,8 +341,9 @@ def pose_edges(
     if compiled:
         keys, centres = table.viewpoints(c_obj) if table is not None else ([], np.zeros((0, 3)))
         normals_t, offsets = edges._facing_terms
+        f64 = kernels.as_f64  # one layout: one compiled signature
         contour, active, shared = kernels.facing_sets(
-            normals_t, offsets, edges.crease, c_obj, centres
+            f64(normals_t), f64(offsets), kernels.as_bool(edges.crease), f64(c_obj), f64(centres)
         )
     else:
         faces, turns_away = _facing(edges, c_obj)

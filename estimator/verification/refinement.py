@@ -321,18 +321,19 @@ def _data(
     ``sets`` (contour, crease), by the compiled kernel (``config.compiled``) or by numpy from
     ``reads`` that hold them (None: read now)."""
     if config.compiled:
+        f64, flag = kernels.as_f64, kernels.as_bool  # one layout: one compiled signature
         return kernels.data_term(
-            edges.points,
-            edges.directions,
-            sets[0],
-            sets[1],
-            R,
-            t,
-            stack.R_cw,
-            stack.t_cw,
-            stack.K,
-            stack.maps,
-            stack.has_mask,
+            f64(edges.points),
+            f64(edges.directions),
+            flag(sets[0]),
+            flag(sets[1]),
+            f64(R),
+            f64(t),
+            f64(stack.R_cw),
+            f64(stack.t_cw),
+            f64(stack.K),
+            np.ascontiguousarray(stack.maps, np.uint8),
+            flag(stack.has_mask),
             scoring.bins,
             float(scoring.truncate_px),
             float(scoring.crease_weight),

@@ -402,18 +402,19 @@ def score_hypotheses(
     if config.compiled:
         dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
         masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
+        f64, flag = kernels.as_f64, kernels.as_bool  # one layout: one compiled signature
         sums, counts = kernels.chamfer_costs(
-            edges.points,
-            edges.directions,
-            active,
-            contour,
-            R_cam,
-            t_cam,
-            np.ascontiguousarray(K),
-            view_of,
-            dcdt,
-            masks,
-            with_mask & use_mask,
+            f64(edges.points),
+            f64(edges.directions),
+            flag(active),
+            flag(contour),
+            f64(R_cam),
+            f64(t_cam),
+            f64(K),
+            np.ascontiguousarray(view_of, np.int64),
+            np.ascontiguousarray(dcdt, np.uint8),
+            np.ascontiguousarray(masks, np.uint8),
+            flag(with_mask & use_mask),
             ec.bins,
             float(ec.truncate_px),
         )

@@ -124,3 +124,19 @@ def test_a_kernel_with_nowhere_to_cache_is_compiled_all_the_same(monkeypatch):
     with pytest.raises(RuntimeError, match="no locator"):
         njit(cache=True)(twice)
     assert _compiled(twice)(21) == 42
+
+
+def test_the_warm_up_compiles_the_only_version_a_check_uses(robi_catalog):
+    """numba compiles a kernel once per argument layout: the warm-up's version is the one a
+    refinement and a verification use (a view such as T[:, :3, :3] passed as it is would compile
+    another, seconds in the middle of a check)."""
+    from posefuse.estimator.verification import kernels
+
+    kernels.compile_kernels()
+    *_, out = _tube_refinement(robi_catalog, RefineConfig())
+    model, T_world_obj, views = _tube(robi_catalog)
+    R = np.array([T_world_obj[:3, :3] @ so3_exp(np.array([0.0, 0.0, a])) for a in (0.0, 0.3)])
+    score_hypotheses(_edges(model), views, R, T_world_obj[:3, 3], CONFIG)
+    assert out.accepted
+    for kernel in (kernels.data_term, kernels.chamfer_costs, kernels.facing_sets):
+        assert len(kernel.signatures) == 1, kernel.signatures
