@@ -200,11 +200,11 @@ def edge_maps(roi: EdgeRoi, config: EdgeConfig) -> EdgeView:
     edges = cv2.Canny(roi.gray, config.canny_low, config.canny_high, L2gradient=True) > 0
     gx = cv2.Sobel(roi.gray, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(roi.gray, cv2.CV_32F, 0, 1, ksize=3)
-    tangent = np.mod(np.arctan2(gy, gx) + np.pi / 2, np.pi)  # the edge runs across the gradient
-    b = (np.floor(tangent / (np.pi / config.bins) + 0.5).astype(np.uint8) % config.bins).astype(
-        np.uint8
-    )
-    b[~edges] = config.bins  # no edge: in no bin
+    # each edge pixel's orientation bin, the rest in no bin (config.bins); the edge runs across
+    # the gradient
+    b = np.full((L, L), config.bins, np.uint8)
+    tangent = np.mod(np.arctan2(gy[edges], gx[edges]) + np.pi / 2, np.pi)
+    b[edges] = np.floor(tangent / (np.pi / config.bins) + 0.5).astype(np.uint8) % config.bins
     dt = np.empty((config.bins, L, L), np.float32)
     for k in range(config.bins):
         # the 5x5 mask's distance is within 0.2 px of the exact one where read, and cheaper
