@@ -399,9 +399,9 @@ def score_hypotheses(
     with_mask = np.array([v.mask_dt is not None for v in views])
     use_mask = bool(with_mask.any()) and config.mask_weight > 0
     enough = edges.samples_for(config.min_points) - 1e-9
+    dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
+    masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
     if config.compiled:
-        dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
-        masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
         f64, flag = kernels.as_f64, kernels.as_bool  # one layout: one compiled signature
         sums, counts = kernels.chamfer_costs(
             f64(edges.points),
@@ -418,62 +418,57 @@ def score_hypotheses(
             ec.bins,
             float(ec.truncate_px),
         )
-
-        def mean_of(total: np.ndarray, n: np.ndarray) -> np.ndarray:
-            return np.where(n >= enough, total / np.maximum(n, 1) / ec.truncate_px, 1.0)
-
-        cost = mean_of(sums[:, 0], counts[:, 0]) + config.crease_weight * mean_of(
-            sums[:, 1], counts[:, 1]
-        )
-        if use_mask:
-            cost += config.mask_weight * with_mask[view_of] * mean_of(sums[:, 2], counts[:, 0])
     else:
-        cost = _chamfer_costs_numpy(edges, views, active, contour, R_cam, t_cam, K, config)
+        sums, counts = _chamfer_sums_numpy(
+            edges, active, contour, R_cam, t_cam, K, view_of, dcdt, masks, with_mask & use_mask, ec
+        )
+
+    def mean_or_one(total: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """(N,) per pose: the mean distance over its n samples, truncated to [0, 1]; 1 (no
+        information) with fewer than ``min_points`` of them at the finest spacing."""
+        return np.where(n >= enough, total / np.maximum(n, 1) / ec.truncate_px, 1.0)
+
+    cost = mean_or_one(sums[:, 0], counts[:, 0]) + config.crease_weight * mean_or_one(
+        sums[:, 1], counts[:, 1]
+    )
+    if use_mask:
+        cost += config.mask_weight * with_mask[view_of] * mean_or_one(sums[:, 2], counts[:, 0])
     if config.coverage_weight > 0 and edges.mesh is not None:
         points = [v.mask_points if v.mask_points is not None else np.zeros((0, 2)) for v in views]
         cost += config.coverage_weight * silhouette_misses(edges.mesh, R_cam, t_cam, K, points * H)
     return cost.reshape(H, V)
 
 
-def _chamfer_costs_numpy(
+def _chamfer_sums_numpy(
     edges: ModelEdges,
-    views: list[EdgeView],
     active: np.ndarray,
     contour: np.ndarray,
     R_cam: np.ndarray,
     t_cam: np.ndarray,
     K: np.ndarray,
-    config: VerificationConfig,
-) -> np.ndarray:
-    """(N,) the chamfer part of :func:`score_hypotheses` by numpy, pose n = h * V + v: the
-    reference of :func:`estimator.verification.kernels.chamfer_costs`."""
-    V, N = len(views), len(R_cam)
-    # only the samples that show are projected and read
+    view_of: np.ndarray,
+    dcdt: np.ndarray,
+    masks: np.ndarray,
+    has_mask: np.ndarray,
+    ec: EdgeConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`estimator.verification.kernels.chamfer_costs` by numpy, its reference (the same
+    arguments and results): only the samples that show are projected and read."""
+    N = len(R_cam)
     pose, sample, uv, angle = project_shown(edges, active, R_cam, t_cam, K)
     on_contour = contour[pose, sample]
-    ec = config.edges
-    view_of = pose % V
+    view = view_of[pose]
     b = np.floor(angle / (np.pi / ec.bins) + 0.5).astype(np.intp) % ec.bins
-    dcdt = np.stack([v.dcdt for v in views])  # (V, bins, L, L): one read for all views
-    d, _ = sample_maps(
-        dcdt.reshape(-1, *dcdt.shape[2:]), view_of * ec.bins + b, uv, ec.truncate_px, False
-    )
-
-    def mean_or_one(values: np.ndarray, use: np.ndarray) -> np.ndarray:
-        """(N,) per pose: the mean of ``values`` over its ``use`` samples, truncated to [0, 1];
-        1 (no information) with fewer than ``min_points`` of them at the finest spacing."""
-        n = np.bincount(pose, weights=use, minlength=N)
-        total = np.bincount(pose, weights=values * use, minlength=N)
-        mean = total / np.maximum(n, 1) / ec.truncate_px
-        return np.where(n >= edges.samples_for(config.min_points) - 1e-9, mean, 1.0)
-
-    cost = mean_or_one(d, on_contour) + config.crease_weight * mean_or_one(d, ~on_contour)
-    with_mask = np.array([v.mask_dt is not None for v in views])
-    if with_mask.any() and config.mask_weight > 0:
-        masks = np.stack([v.mask_dt if v.mask_dt is not None else v.dcdt[0] for v in views])
-        dm, _ = sample_maps(masks, view_of, uv, ec.truncate_px, False)
-        cost += config.mask_weight * np.tile(with_mask, N // V) * mean_or_one(dm, on_contour)
-    return cost
+    d, _ = sample_maps(dcdt, view * ec.bins + b, uv, ec.truncate_px, False)
+    sums, counts = np.zeros((N, 3)), np.zeros((N, 2))
+    for k, use in enumerate((on_contour, ~on_contour)):
+        counts[:, k] = np.bincount(pose, weights=use, minlength=N)
+        sums[:, k] = np.bincount(pose, weights=d * use, minlength=N)
+    with_mask = on_contour & has_mask[view]
+    if with_mask.any():
+        dm, _ = sample_maps(masks, view, uv, ec.truncate_px, False)
+        sums[:, 2] = np.bincount(pose, weights=dm * with_mask, minlength=N)
+    return sums, counts
 
 
 def hypotheses(
