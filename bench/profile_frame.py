@@ -39,6 +39,7 @@ STAGES = (
     "settled checks",
     "verification",
     "refinement",
+    "challenge",
     "estimator (rest)",
     "encode",
     "publish",
@@ -107,6 +108,9 @@ def instrumented(timer: StageTimer):
         (tracker, "agrees", "settled checks"),
         (tracker, "verify", "verification"),
         (tracker, "refine_pose", "refinement"),
+        # the challenge's scorings and, inside it, its challenger's refinement (timed here,
+        # counted among the refinements below)
+        (tracker.PoseStage, "_challenge", "challenge"),
     ]
     saved = [(owner, name, getattr(owner, name)) for owner, name, _ in patches]
     try:
@@ -133,7 +137,7 @@ def instrumented(timer: StageTimer):
 # changed" rule asked for, and a settled check that agreed is a verification saved
 COUNTED = ("edge maps", "settled checks", "verification", "refinement")
 # what the daemon's deferred check runs, off the frame's path (the RoIs stay on it)
-STEP = COUNTED
+STEP = (*COUNTED, "challenge")
 
 
 def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, config=None) -> dict:
@@ -270,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     step = sum(r["stages_ms"][s] for s in STEP)
     print(
         f"{'the step (deferred)':<20} {step:>9.1f}  (edge maps, settled checks, verification, "
-        "refinement: the daemon runs them between frames)"
+        "refinement, challenge: the daemon runs them between frames)"
     )
     print(f"{'frame p50':<20} {r['total_p50_ms']:>9.1f}")
     print(f"{'frame p95':<20} {r['total_p95_ms']:>9.1f}")

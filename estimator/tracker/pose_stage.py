@@ -45,6 +45,8 @@ from posefuse.estimator.verification.verify import (
     near_symmetries,
     near_symmetry_turns,
     refinement_reach_deg,
+    reweight,
+    score_hypotheses,
     verify,
 )
 
@@ -360,3 +362,62 @@ class PoseStage:
             rcfg,
             warm,
         )
+        self._challenge(track, edges, rcfg)
+
+    def _challenge(self, track: Track, edges: ModelEdges, rcfg: RefineConfig) -> None:
+        """A winner whose refined pose still costs more than ``challenge_cost`` in the kept
+        views is challenged by the best hypothesis outside the refinement's reach
+        (``accept_deg``) of it, refined too; the challenger leads, with its refinement, where
+        its refined pose costs at least a temperature less. The two refined costs replace the
+        two hypotheses' in the verdict, and the components are weighed again.
+
+        The verification scores every hypothesis at the track's translation; where the front
+        end's centres are biased by a tenth of the diameter, the wrong basin can score best
+        there, and its refinement stays in it. Refined, each hypothesis is scored at its own
+        translation."""
+        verdict, refined, vcfg = track.verdict, track.refined, self.config.verification
+        views = track.edge_views
+        if vcfg.challenge_cost is None:
+            return
+
+        def refined_pose(result, R_start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            if result.accepted:
+                return result.R_world_obj, result.t_world_obj
+            return R_start, track.estimate.t_world_obj
+
+        best = verdict.best
+        R_w, t_w = refined_pose(refined, verdict.R_world_obj[best])
+        cost_w = float(score_hypotheses(edges, views, R_w[None], t_w, vcfg).mean())
+        if cost_w <= vcfg.challenge_cost:
+            return
+        away = rotation_angle(np.einsum("ji,hjk->hik", R_w, verdict.R_world_obj))
+        outside = np.flatnonzero(away > np.deg2rad(rcfg.accept_deg))
+        if len(outside) == 0:
+            return
+        c = int(outside[np.argmin(verdict.cost[outside])])
+        R_c = verdict.R_world_obj[c]
+        t_world = track.estimate.t_world_obj
+        component = track.mixture.components[int(verdict.component[c])]
+        challenger = refine_pose(
+            edges,
+            views,
+            PoseGuess(R_c, t_world),
+            PosePrior(t_world, track.estimate.cov, component.cov),
+            EdgeScoring.of(vcfg),
+            rcfg,
+        )
+        R_cr, t_cr = refined_pose(challenger, R_c)
+        cost_c = float(score_hypotheses(edges, views, R_cr[None], t_cr, vcfg).mean())
+        if cost_c > cost_w - vcfg.temperature:
+            return
+        cost = verdict.cost.copy()
+        cost[best], cost[c] = cost_w, cost_c
+        weights = reweight(
+            cost,
+            verdict.component,
+            track.mixture.weights,
+            len(views),
+            vcfg.temperature,
+        )
+        track.verdict = replace(verdict, cost=cost, weights=weights, best=c)
+        track.refined = challenger

@@ -71,6 +71,11 @@ class RefineConfig:
     # (docs/lab/2026-12-03-verification-translation-prior-allows.md)
     accept_frac_max: float | None = 0.3
     accept_chi2: float = 11.34  # chi2 with 3 degrees of freedom at p = 0.99
+    # ... or where the views plainly prefer it: the cost fell by at least this share of the
+    # start's (None: never). A track's translation prior can be sure of a centre the front end
+    # biased, and then refuses the move the edges of every view ask for. Chosen on the tuning
+    # sets (docs/lab/2026-12-05-verification-challenge-and-cost-drop.md)
+    accept_cost_drop: float | None = 0.35
     # the published covariance is the inverse of the information at the solution plus a floor
     # (standard deviations per axis): what the views share, the model's edges against the
     # image's and the maps' own bias, does not average out over views, while the information
@@ -371,19 +376,28 @@ def _data(
 
 
 def accepts_translation(
-    moved: np.ndarray, info_t: np.ndarray, diameter: float, config: RefineConfig
+    moved: np.ndarray,
+    info_t: np.ndarray,
+    diameter: float,
+    config: RefineConfig,
+    cost_drop: float | None = None,
 ) -> bool:
     """Whether a refinement whose translation moved by ``moved`` (3,) metres from its start is
     accepted: within ``accept_frac`` of the diameter, or within ``accept_frac_max`` where the
     translation prior, of information ``info_t`` (3, 3) 1/m^2, finds the move likely (squared
-    Mahalanobis distance at most ``accept_chi2``)."""
+    Mahalanobis distance at most ``accept_chi2``) or the views plainly prefer it (``cost_drop``,
+    the share of the start's cost the refinement took off, at least ``accept_cost_drop``)."""
     distance = float(np.linalg.norm(moved))
     if distance <= config.accept_frac * diameter:
         return True
-    if config.accept_frac_max is None:
+    if config.accept_frac_max is None or distance > config.accept_frac_max * diameter:
         return False
-    return distance <= config.accept_frac_max * diameter and (
-        float(moved @ info_t @ moved) <= config.accept_chi2
+    if float(moved @ info_t @ moved) <= config.accept_chi2:
+        return True
+    return (
+        config.accept_cost_drop is not None
+        and cost_drop is not None
+        and cost_drop >= config.accept_cost_drop
     )
 
 
@@ -500,8 +514,9 @@ def refine_pose(
         else:
             cost, H, g = objective(R, t, sets, reads)
 
-    def translation_allowed(moved: np.ndarray) -> bool:
-        return accepts_translation(moved, info_t, edges.diameter, config)
+    def translation_allowed(moved: np.ndarray, cost: float) -> bool:
+        drop = 1.0 - cost / cost_start if cost_start > 0 else 0.0
+        return accepts_translation(moved, info_t, edges.diameter, config, drop)
 
     step_tol_rad, step_tol_m = (
         np.deg2rad(config.step_tol_deg),
@@ -534,7 +549,7 @@ def refine_pose(
             if small or before - cost < config.cost_tol * before:
                 break
             # gone past what would be accepted: refused (the prior seldom pulls it back)
-            if config.stop_when_refused and not translation_allowed(t - t_start):
+            if config.stop_when_refused and not translation_allowed(t - t_start, cost):
                 break
         else:
             lam *= 5
@@ -551,7 +566,7 @@ def refine_pose(
         else "rotation"
         if moved_deg > config.accept_deg
         else ""
-        if translation_allowed(t - t_start)
+        if translation_allowed(t - t_start, cost)
         else "translation"
     )
     accepted = not refused

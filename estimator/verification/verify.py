@@ -47,6 +47,7 @@ __all__ = [
     "near_symmetries",
     "near_symmetry_turns",
     "refinement_reach_deg",
+    "reweight",
     "score_hypotheses",
     "verify",
 ]
@@ -94,6 +95,12 @@ class VerificationConfig:
     # tuning sets (procedural mixed 4242 and robi 4343 with the network, the five meshes of
     # ../shared/objects rendered with seed 6161 with the oracle; docs/verification.md)
     ambiguous_odds: float = 0.05
+    # a winner whose refined pose still costs more than this (a biased centre can make the
+    # wrong basin score best at the track's translation) is challenged: the best hypothesis of
+    # another basin is refined too, and leads where its refined pose costs less by at least
+    # the temperature (None: never challenged). Chosen on the tuning sets
+    # (docs/lab/2026-12-05-verification-challenge-and-cost-drop.md)
+    challenge_cost: float | None = 0.6
     # the chamfer sums by the compiled kernel (estimator.verification.kernels), or by the numpy
     # code it replaced (the reference, equal to rounding)
     compiled: bool = True
@@ -547,11 +554,23 @@ def verify(
         per_view = cached_scores(edges, views, R_h, t_world_obj, config, cache)
     cost = per_view.mean(axis=1)
     best = int(np.argmin(cost))
-    # each verified component by its best variant; the others keep their weight as it is
-    # scaled by the worst verified cost (they were not asked, so they cannot gain)
-    comp_cost = np.full(C, cost.max())
-    np.minimum.at(comp_cost, comp, cost)
-    w = np.asarray(component_weights, float)
-    scaled = w * np.exp(-len(views) * (comp_cost - cost[best]) / config.temperature)
-    weights = scaled / scaled.sum() if scaled.sum() > 0 else w
+    weights = reweight(cost, comp, component_weights, len(views), config.temperature)
     return Verdict(R_h, comp, var, cost, per_view, weights, best)
+
+
+def reweight(
+    cost: np.ndarray,
+    component: np.ndarray,
+    component_weights: np.ndarray,
+    n_views: int,
+    temperature: float,
+) -> np.ndarray:
+    """(C,) the components' weights after a verification: each verified component by its best
+    hypothesis' cost (``cost`` (H,), of ``component`` (H,)), ``exp(-V (cost - best) /
+    temperature)``; the components not asked keep their weight as scaled by the worst verified
+    cost (they cannot gain)."""
+    comp_cost = np.full(len(component_weights), cost.max())
+    np.minimum.at(comp_cost, component, cost)
+    w = np.asarray(component_weights, float)
+    scaled = w * np.exp(-n_views * (comp_cost - cost.min()) / temperature)
+    return scaled / scaled.sum() if scaled.sum() > 0 else w

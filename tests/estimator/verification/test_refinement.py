@@ -280,11 +280,22 @@ def test_a_move_past_accept_frac_is_accepted_only_where_the_translation_prior_al
     moved = ok.t_world_obj - t0
     assert 0.001 * model.diameter < np.linalg.norm(moved) < 0.3 * model.diameter
     chi2 = float(moved @ moved) / (0.1 * model.diameter) ** 2  # the prior is isotropic here
+    drop = 1.0 - ok.cost / ok.cost_start
+    assert 0.0 < drop < 1.0
+    shut = RefineConfig(accept_frac=0.001, accept_chi2=0.5 * chi2, stop_when_refused=False)
     for config, accepted in (
         (RefineConfig(accept_frac=0.001, accept_frac_max=0.3), True),
-        (RefineConfig(accept_frac=0.001, accept_frac_max=0.3, accept_chi2=0.5 * chi2), False),
+        (
+            RefineConfig(
+                accept_frac=0.001, accept_frac_max=0.3, accept_chi2=0.5 * chi2, accept_cost_drop=None
+            ),
+            False,
+        ),
         (RefineConfig(accept_frac=0.001, accept_frac_max=None), False),
         (RefineConfig(accept_frac=0.001, accept_frac_max=0.001), False),
+        # the gate shut, and the cost fell by enough, or not (judged at the end)
+        (dataclasses.replace(shut, accept_cost_drop=0.9 * drop), True),
+        (dataclasses.replace(shut, accept_cost_drop=1.1 * drop), False),
     ):
         *_, out = _tube_refinement(robi_catalog, config)
         assert out.accepted is accepted, config
@@ -495,3 +506,20 @@ def test_accepts_translation_bounds_the_move_by_the_diameter_and_the_prior():
     assert not accepts_translation(0.35 * d * x, loose, d, config)  # past 0.3 d: never
     fixed = dataclasses.replace(config, accept_frac_max=None)
     assert not accepts_translation(0.25 * d * x, loose, d, fixed)
+
+
+def test_accepts_translation_the_views_plainly_prefer_past_a_sure_prior():
+    """A prior sure of a biased centre refuses the move; a cost that fell by at least
+    accept_cost_drop of the start's takes it, up to accept_frac_max and never past it."""
+    from posefuse.estimator.verification.refinement import accepts_translation
+
+    d = 0.1
+    config = RefineConfig(accept_cost_drop=0.3)
+    x = np.array([0.0, 0.0, 1.0])
+    tight = np.eye(3) / (0.02 * d) ** 2  # a move of 0.13 d is 6.5 sigma
+    assert not accepts_translation(0.13 * d * x, tight, d, config)  # no cost given
+    assert not accepts_translation(0.13 * d * x, tight, d, config, cost_drop=0.29)
+    assert accepts_translation(0.13 * d * x, tight, d, config, cost_drop=0.31)
+    assert not accepts_translation(0.31 * d * x, tight, d, config, cost_drop=0.9)
+    off = dataclasses.replace(config, accept_cost_drop=None)
+    assert not accepts_translation(0.13 * d * x, tight, d, off, cost_drop=0.9)

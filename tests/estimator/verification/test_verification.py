@@ -428,8 +428,11 @@ def test_a_settled_track_is_verified_again_only_when_a_new_view_disagrees(
     runs = {}
     for margin in (None, -10.0, 10.0):
         counts.clear()
+        # no challenge: its challengers' refinements are not the winners' counted here
         config = TrackerConfig(
-            verification=dataclasses.replace(VerificationConfig(), settled_margin=margin)
+            verification=dataclasses.replace(
+                VerificationConfig(), settled_margin=margin, challenge_cost=None
+            )
         )
         estimator = _run_scene(dataset, scene_id, config, default_banks)
         runs[margin] = (dict(counts), estimator)
