@@ -287,7 +287,10 @@ def test_a_move_past_accept_frac_is_accepted_only_where_the_translation_prior_al
         (RefineConfig(accept_frac=0.001, accept_frac_max=0.3), True),
         (
             RefineConfig(
-                accept_frac=0.001, accept_frac_max=0.3, accept_chi2=0.5 * chi2, accept_cost_drop=None
+                accept_frac=0.001,
+                accept_frac_max=0.3,
+                accept_chi2=0.5 * chi2,
+                accept_cost_drop=None,
             ),
             False,
         ),
