@@ -279,10 +279,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'frame p50':<20} {r['total_p50_ms']:>9.1f}")
     print(f"{'frame p95':<20} {r['total_p95_ms']:>9.1f}")
     n = r["calls"]
+    # every refinement is counted accepted or refused; those not timed as the refinement stage
+    # ran inside a challenge (its challenger's)
+    refinements = r["refinements_accepted"] + sum(r["refinements_refused"].values())
     print(
         f"over {r['frames']} frames: {n['edge maps']} views kept (edge maps), "
         f"{n['settled checks']} settled checks, {n['verification']} verifications, "
-        f"{n['refinement']} refinements ({r['refinements_accepted']} accepted)"
+        f"{refinements} refinements ({r['refinements_accepted']} accepted; "
+        f"{refinements - n['refinement']} of them challengers')"
     )
     print(f"self-occlusion rays cast by the viewpoint tables: {r['rays_cast']}")
     refused = r["refinements_refused"]
