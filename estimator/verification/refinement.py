@@ -106,6 +106,7 @@ class RefineConfig:
             or (self.accept_frac_max is not None and self.accept_frac_max < self.accept_frac)
             or self.floor_translation_frac < 0
             or self.floor_rotation_deg < 0
+            or (self.accept_cost_drop is not None and not 0.0 < self.accept_cost_drop <= 1.0)
         ):
             raise ValueError(f"invalid refinement config: {self}")
 

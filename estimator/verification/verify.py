@@ -106,7 +106,11 @@ class VerificationConfig:
     compiled: bool = True
 
     def __post_init__(self) -> None:
-        if self.sample_stride < 1 or self.max_views < 1:
+        if (
+            self.sample_stride < 1
+            or self.max_views < 1
+            or (self.challenge_cost is not None and self.challenge_cost < 0)
+        ):
             raise ValueError(f"invalid verification config: {self}")
 
 

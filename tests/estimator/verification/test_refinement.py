@@ -511,6 +511,20 @@ def test_accepts_translation_bounds_the_move_by_the_diameter_and_the_prior():
     assert not accepts_translation(0.25 * d * x, loose, d, fixed)
 
 
+@pytest.mark.parametrize("drop", [0.0, -0.1, 1.5])
+def test_a_cost_drop_outside_zero_to_one_is_refused(drop):
+    with pytest.raises(ValueError, match="refinement config"):
+        RefineConfig(accept_cost_drop=drop)
+
+
+def test_a_negative_challenge_cost_is_refused():
+    from posefuse.estimator.verification.verify import VerificationConfig
+
+    with pytest.raises(ValueError, match="verification config"):
+        VerificationConfig(challenge_cost=-0.1)
+    assert VerificationConfig(challenge_cost=None).challenge_cost is None
+
+
 def test_accepts_translation_the_views_plainly_prefer_past_a_sure_prior():
     """A prior sure of a biased centre refuses the move; a cost that fell by at least
     accept_cost_drop of the start's takes it, up to accept_frac_max and never past it."""
