@@ -56,7 +56,7 @@ def run(profiles, n_scenes: int, budget: int, progress: bool = True) -> dict:
             scene = make_scene(catalog, spec, seed, REALSENSE_1280x720)
 
             def detect(image, k, _sid=scene_id):
-                return network.detect(image, stamp_seed=_sid * 1000 + k)
+                return network.detect(image)
 
             source = RenderedScene(catalog, scene, spec, detect, config, seed + 1)
             truth = source.truth()
@@ -236,7 +236,7 @@ def picture(path: Path, profile: str = "robi", scene_id: int = 0, views: int = 2
     seed = scene_seed(SEEDS[profile], scene_id)
     scene = make_scene(catalog, spec, seed, REALSENSE_1280x720)
     source = RenderedScene(
-        catalog, scene, spec, lambda im, k: network.detect(im, stamp_seed=k), ActiveConfig(), seed
+        catalog, scene, spec, lambda im, k: network.detect(im), ActiveConfig(), seed
     )
     est = MultiViewEstimator(catalog)
     taken = source.path[:views]

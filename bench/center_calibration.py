@@ -43,7 +43,7 @@ def collect(datasets, model: str) -> list[tuple[float, float]]:
         views = list(dataset.views())
         for view in tqdm(views, desc=dataset.root.name, unit="view"):
             image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-            dets = frontend.detect(image, stamp_seed=view.im_id)
+            dets = frontend.detect(image)
             _, truth, matched = match_to_truth(dets, view)
             for i, j in matched.items():
                 e = dets[i].center_uv - truth[j]

@@ -25,7 +25,7 @@ from collections import Counter
 
 import numpy as np
 
-from posefuse.estimator.frontend.network import NetworkFrontend
+from posefuse.estimator.frontend.network import NetworkFrontend, image_seed
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import match_to_truth
 from posefuse.service.resources import DEFAULT_MODEL
@@ -43,11 +43,11 @@ BOX_NEAR = 0.3  # x the longer side of the part's visible box
 MIN_VISIB = 0.75
 
 
-def view_fates(fe: NetworkFrontend, image: np.ndarray, view, stamp_seed: int):
+def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
     """(fates, stage-two errors in px) of one view's parts (visib > 0.75)."""
     boxes = fe.boxes(image)
-    first_pass = fe.stage_two(image, boxes, np.random.default_rng([fe.seed, stamp_seed]))
-    final = fe.detect(image, stamp_seed=stamp_seed)
+    first_pass = fe.stage_two(image, boxes, np.random.default_rng([fe.seed, image_seed(image)]))
+    final = fe.detect(image)
     agnostic = fe.card.agnostic  # a generalist's boxes and detections are of any class
     gts, truth, pairs = match_to_truth(final, view, MAX_PX, any_class=agnostic)
     found = set(pairs.values())
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
         errors: list[float] = []
         for view in ds.views():
             image = ds.scene(view.scene_id).load_rgb(view.im_id)
-            fates, errs = view_fates(fe, image, view, view.scene_id * 100_000 + view.im_id)
+            fates, errs = view_fates(fe, image, view)
             counts.update(fates)
             errors.extend(errs)
         n = sum(counts.values())

@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         seen[profile] += 1
         image = np.asarray(ts.full_rgb[v])
-        detections = fe.detect(image, stamp_seed=v)
+        detections = fe.detect(image)
         found, parts, matched = score_view(detections, rows_of[v], class_of, fe.card.agnostic)
         boxed = score_boxes(fe.boxes(image), rows_of[v], class_of, fe.card.agnostic)
         totals[profile] += (found, parts, matched, len(detections), boxed)

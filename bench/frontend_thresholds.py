@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
 
             def detect(view, fe=fe, images=images):
                 image = images[(view.scene_id, view.im_id)]
-                return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+                return fe.detect(image)
 
             s = score_frontend(ds, detect, views)
             print(

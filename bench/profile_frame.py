@@ -187,7 +187,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
                         )
                     # detect() runs the network again; its own share is taken off below
                     t0 = time.perf_counter()
-                    detections = network.detect(image, stamp_seed=view.im_id)
+                    detections = network.detect(image)
                     timer.seconds["voting"] += time.perf_counter() - t0 - timer.seconds["network"]
                     t_est = time.perf_counter()
                     with instrumented(timer):

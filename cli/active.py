@@ -81,7 +81,7 @@ def _cmd_run_active(args: argparse.Namespace) -> int:
     for scene_id in scene_ids:
 
         def detect(image, k, _sid=scene_id):
-            return network.detect(image, stamp_seed=_sid * 1000 + k)
+            return network.detect(image)
 
         if args.dataset:
             source = RecordedScene(dataset.scene(scene_id), detect)

@@ -352,7 +352,7 @@ def _cmd_eval_frontend(args: argparse.Namespace) -> int:
 
     def detect(view):
         image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-        return frontend.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+        return frontend.detect(image)
 
     agnostic = frontend.card.agnostic  # a generalist's "a part" matches a part of any class
     score = score_frontend(dataset, detect, views, min_visib=args.min_visib, any_class=agnostic)
@@ -376,7 +376,7 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
     view = scene.view(args.im)
     image = scene.load_rgb(args.im)
     raw = frontend.infer(image)
-    dets = frontend.detect(image, stamp_seed=args.scene * 100_000 + args.im)
+    dets = frontend.detect(image)
     truth = [view.camera.project(g.T_cam_obj[:3, 3]) for g in view.gts if g.visib_fract > 0.1]
     picture = frontend_overlay(image, raw, dets, frontend.card, np.array(truth).reshape(-1, 2))
     if args.crop:

@@ -54,16 +54,14 @@ class LabelledNetworkFrontend:
 
     def detect_with_truth(self, view):
         image = self._image(view)
-        dets = self.network.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+        dets = self.network.detect(image)
         return self._labelled(dets, view)
 
     def detect_expected_with_truth(self, view, expected):
         """Stage two where the tracks expect parts the detections miss
         (:meth:`NetworkFrontend.detect_at`), labelled as :meth:`detect_with_truth`'s."""
         image = self._image(view)
-        dets = self.network.detect_at(
-            image, expected, stamp_seed=view.scene_id * 100_000 + view.im_id
-        )
+        dets = self.network.detect_at(image, expected)
         return self._labelled(dets, view)
 
     def _labelled(self, dets, view):

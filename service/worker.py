@@ -196,7 +196,7 @@ def make_detector(settings, catalog):
     network = NetworkFrontend(
         settings.model, catalog, threads=settings.onnx_threads, spin=settings.onnx_spin
     )
-    return lambda image, stamp_ns: network.detect(image, stamp_seed=stamp_ns)
+    return lambda image, stamp_ns: network.detect(image)
 
 
 def now_ns() -> int:

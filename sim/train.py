@@ -541,7 +541,7 @@ def score_tuning(model_path: Path, datasets: tuple[str, ...], seed: int = 0) -> 
 
         def detect(view, fe=fe, ds=ds):
             image = ds.scene(view.scene_id).load_rgb(view.im_id)
-            return fe.detect(image, stamp_seed=view.scene_id * 100_000 + view.im_id)
+            return fe.detect(image)
 
         s = score_frontend(ds, detect, list(ds.views()), any_class=fe.card.agnostic)
         out[Path(root).name] = {
@@ -565,7 +565,7 @@ def _val_matches(fe, val: TrainingSet, catalog) -> tuple[int, int, int, list, li
     n_true = n_found = n_dets = 0
     rows_of = val.view_instances()
     for i in range(val.n_views):
-        dets = fe.detect(np.asarray(val.full_rgb[i]), stamp_seed=i)
+        dets = fe.detect(np.asarray(val.full_rgb[i]))
         n_dets += len(dets)
         rows = rows_of[i][rows_of[i][:, 9] > 0.75]
         n_true += len(rows)

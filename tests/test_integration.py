@@ -56,7 +56,7 @@ def _offline(dataset, messages):
     network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
     worker = EstimatorWorker(
         MultiViewEstimator(dataset.catalog, TrackerConfig.with_verification(Settings().verify)),
-        lambda image, stamp: network.detect(image, stamp_seed=stamp),
+        lambda image, stamp: network.detect(image),
     )
     replay_offline(messages, worker, "itest")
     return {e.object_id: estimate_to_dict(e) for e in worker.snapshot()}

@@ -54,7 +54,7 @@ def _truth() -> list[list[tuple[int, np.ndarray]]]:
 
 def frontend_fingerprint() -> list[list[list[float]]]:
     """Per frame, the first FRONTEND_FRAMES images' detections as [obj_id, u, v], as the daemon
-    computes them (the shipped model, its default threads, the stamp as the voting's seed)."""
+    computes them (the shipped model, its default threads, the image's own seed)."""
     from posefuse.estimator.frontend.network import NetworkFrontend
     from posefuse.service.codec import decoders
 
@@ -66,7 +66,7 @@ def frontend_fingerprint() -> list[list[list[float]]]:
     for m in read_messages(DEFAULT_RECORDING):
         if m.key.endswith("/image"):
             msg = decode(m.payload)
-            dets = network.detect(msg.image, stamp_seed=msg.stamp_ns)
+            dets = network.detect(msg.image)
             frames.append([[float(d.obj_id), *map(float, d.center_uv)] for d in dets])
             if len(frames) == FRONTEND_FRAMES:
                 break

@@ -122,7 +122,7 @@ def test_a_generalist_says_a_part_for_any_catalog_and_onboarding_starts_every_cl
 
     fe = NetworkFrontend(tmp_path / "g.onnx", load_catalog(DEFAULT_CATALOG))
     image = np.full((720, 1280, 3), 90, np.uint8)
-    assert all(d.obj_id == AGNOSTIC_CLASSES[0][0] for d in fe.detect(image, stamp_seed=0))
+    assert all(d.obj_id == AGNOSTIC_CLASSES[0][0] for d in fe.detect(image))
     state = torch.load(tmp_path / "g.ckpt", map_location="cpu", weights_only=False)
     assert state["config"]["agnostic"] is True
     assert state["nets"]["det"]["heatmap.weight"].shape[0] == 1

@@ -127,7 +127,7 @@ def test_shipped_model_finds_the_visible_parts_where_they_are(full_res_dataset, 
     n_parts = found = n_dets = near = 0
     for view in dataset.views():
         image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-        dets = frontend.detect(image, stamp_seed=view.im_id)
+        dets = frontend.detect(image)
         _well_formed(dets, image.shape[:2], robi_catalog)
         parts = [
             (g.obj_id, _projected_origin(view.camera, g.T_cam_obj), g.visib_fract)
@@ -161,8 +161,8 @@ def test_sleeping_threads_find_what_spinning_ones_find(full_res_dataset, robi_ca
     key = "session.intra_op.allow_spinning"
     for session in (sleeping.session, sleeping.crop_session):
         assert session.get_session_options().get_session_config_entry(key) == "0"
-    a = spinning.detect(image, stamp_seed=view.im_id)
-    b = sleeping.detect(image, stamp_seed=view.im_id)
+    a = spinning.detect(image)
+    b = sleeping.detect(image)
     assert len(a) == len(b) > 0
     for x, y in zip(a, b, strict=True):
         assert x.obj_id == y.obj_id and x.score == y.score
@@ -238,6 +238,34 @@ def test_least_squares_center_equals_the_sum_of_projections():
     assert np.linalg.norm(got_x - center) < 0.5
 
 
+def test_the_daemons_detections_are_a_function_of_the_pixels_alone(
+    full_res_dataset, robi_catalog
+):
+    """The daemon's detector (``service.worker.make_detector``) gives one frame the same
+    detections, to the bit, whatever its stamp, and the same as ``detect`` with the image's
+    own seed (what ``run-dataset`` calls); a seed is a function of every pixel."""
+    from posefuse.estimator.frontend.network import image_seed
+    from posefuse.service.settings import Settings
+    from posefuse.service.worker import make_detector
+
+    dataset = load_dataset(full_res_dataset)
+    view = next(iter(dataset.views()))
+    image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+    detect = make_detector(Settings(model=DEFAULT_MODEL), robi_catalog)
+    by_stamp = [detect(image.copy(), stamp) for stamp in (0, 1_764_800_000_000_000_000)]
+    offline = NetworkFrontend(DEFAULT_MODEL, robi_catalog).detect(image)
+    assert len(offline) > 0
+    for dets in by_stamp:
+        assert [d.obj_id for d in dets] == [d.obj_id for d in offline]
+        for x, y in zip(dets, offline, strict=True):
+            assert np.array_equal(x.center_uv, y.center_uv)
+            assert np.array_equal(x.center_cov, y.center_cov) and x.score == y.score
+    touched = image.copy()
+    touched[-1, -1, 2] ^= 1
+    assert image_seed(touched) != image_seed(image) == image_seed(image.copy())
+    assert image_seed(image[:, :-1]) != image_seed(image)
+
+
 def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, robi_catalog):
     """bench.frontend_misses against score_frontend, which counts the same parts on its own:
     every part more than 75% visible gets exactly one fate, and "found" is the score's recall."""
@@ -248,15 +276,12 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
     frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
     images = {v.im_id: dataset.scene(v.scene_id).load_rgb(v.im_id) for v in dataset.views()}
 
-    def stamp(view):
-        return view.scene_id * 100_000 + view.im_id
-
     fates = []
     for view in dataset.views():
-        fates += view_fates(frontend, images[view.im_id], view, stamp(view))[0]
+        fates += view_fates(frontend, images[view.im_id], view)[0]
     score = score_frontend(
         dataset,
-        lambda v: frontend.detect(images[v.im_id], stamp_seed=stamp(v)),
+        lambda v: frontend.detect(images[v.im_id]),
         list(dataset.views()),
     )
     assert set(fates) <= set(FATES)
@@ -288,7 +313,7 @@ def test_stage_two_where_parts_are_expected_finds_them_and_not_where_none_is(
             ExpectedPart(f"p{k}", obj_id, uv + rng.normal(0, 3.0 / np.sqrt(2), 2), float(side))
             for k, (obj_id, uv, side) in enumerate(parts)
         ]
-        dets = frontend.detect_at(image, expected, stamp_seed=view.im_id)
+        dets = frontend.detect_at(image, expected)
         _well_formed(dets, image.shape[:2], robi_catalog)
         n_parts += len(parts)
         found += sum(
@@ -306,7 +331,7 @@ def test_stage_two_where_parts_are_expected_finds_them_and_not_where_none_is(
             if len(empty) == 5:
                 break
         n_empty += len(empty)
-        ghosts += len(frontend.detect_at(image, empty, stamp_seed=view.im_id))
+        ghosts += len(frontend.detect_at(image, empty))
     assert n_parts >= 20 and n_empty >= 5
     assert found / n_parts >= 0.6, f"{found} of {n_parts} expected parts found within 5 px"
     assert ghosts <= 0.2 * n_empty, f"{ghosts} detections on {n_empty} crops of empty floor"
