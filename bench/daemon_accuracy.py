@@ -2,7 +2,7 @@
 views of held-out scenes, fed live at a camera's rate, against the same frames fed offline.
 
 python -m posefuse.bench.daemon_accuracy --dataset DIR [--scenes 0 1 ...] [--rate 10]
-    [--first-stamp-s S] [--offline-only]
+    [--first-stamp-s S] [--offline-only] [--check-every C]
 
 For each scene and each checkpoint (4 and 8 views), the daemon is reset and sent the scene's
 first views at ``--rate`` Hz, as a camera sends them (camera info, poses around each image,
@@ -13,8 +13,10 @@ visib > 0.75, confirmed estimates, in the checkpoint's view).
 The reference is the daemon's own worker in this process (``EstimatorWorker.process``: every
 waiting verification after each frame, which equals verifying in the update, bit for bit) on
 the same frames with the same stamps, so the two differ only in when the verification ran.
-``posefuse run-dataset --frontend network`` on the same scenes differs from the reference also
-in the network's per-image seeds; run it beside for that figure.
+The network's voting is seeded by each image's pixels, so the reference gives ``posefuse
+run-dataset --frontend network``'s figures on the same scenes. ``--check-every C`` runs the
+reference's verifications only after every C-th frame and the last, as a daemon that falls
+behind does: what the timing of the checks alone does to the final poses.
 """
 
 from __future__ import annotations
@@ -63,9 +65,12 @@ def _frames(dataset, scene_id: int, base_stamp: int):
         yield base_stamp + k * 100_000_000, scene.view(im_id), scene.load_rgb(im_id)
 
 
-def offline(dataset, scene_ids, stamps: dict[tuple[int, int], int]) -> dict[int, list]:
+def offline(
+    dataset, scene_ids, stamps: dict[tuple[int, int], int], check_every: int = 1
+) -> dict[int, list]:
     """The reference: per checkpoint, PoseResults of the daemon's worker run in this process on
-    the scene's first views (stamps from ``stamps[(scene_id, checkpoint)]``)."""
+    the scene's first views (stamps from ``stamps[(scene_id, checkpoint)]``), every waiting
+    verification run after every ``check_every``-th frame and after the last."""
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.codec import estimate_to_dict
@@ -81,8 +86,12 @@ def offline(dataset, scene_ids, stamps: dict[tuple[int, int], int]) -> dict[int,
         for n in CHECKPOINTS:
             worker = EstimatorWorker(MultiViewEstimator(catalog, tracker_config(settings)), detect)
             frames = list(_frames(dataset, scene_id, stamps[(scene_id, n)]))[:n]
-            for stamp, view, image in frames:
-                worker.process(SyncedFrame("cam0", stamp, image, view.camera, view.T_world_cam))
+            for k, (stamp, view, image) in enumerate(frames):
+                frame = SyncedFrame("cam0", stamp, image, view.camera, view.T_world_cam)
+                worker.fuse(frame, worker.detections(frame))
+                if (k + 1) % check_every == 0 or k == len(frames) - 1:
+                    while worker.check_next() is not None:
+                        pass
             estimates = [estimate_to_dict(e) for e in worker.snapshot()]
             results[n] += _pose_results(estimates, frames[-1][1], scene_id)
     return results
@@ -164,12 +173,21 @@ def main(argv: list[str] | None = None) -> int:
         "--first-stamp-s",
         type=int,
         help="the first run's stamp, seconds since the epoch (default: a minute and a few runs "
-        "before now); the network's seeds are the stamps, so a fixed one repeats the figures",
+        "before now)",
     )
     parser.add_argument(
         "--offline-only", action="store_true", help="the reference alone, no daemon"
     )
+    parser.add_argument(
+        "--check-every",
+        type=int,
+        default=1,
+        metavar="C",
+        help="the reference verifies after every C-th frame and the last (default 1: every frame)",
+    )
     args = parser.parse_args(argv)
+    if args.check_every < 1:
+        parser.error(f"--check-every: must be at least 1, got {args.check_every}")
 
     dataset = load_dataset(args.dataset)
     scene_ids = tuple(args.scenes) if args.scenes else dataset.scene_ids
@@ -182,11 +200,16 @@ def main(argv: list[str] | None = None) -> int:
     t0 = first_s * 1_000_000_000
     stamps = {run: t0 + 2_000_000_000 * k for k, run in enumerate(runs)}
     targets = {n: [(s, dataset.scene(s).im_ids[n - 1]) for s in scene_ids] for n in CHECKPOINTS}
-    got = {"offline": offline(dataset, scene_ids, stamps)}
+    got = {"offline": offline(dataset, scene_ids, stamps, args.check_every)}
     drain = {}
     if not args.offline_only:
         got["live"], drain = live(dataset, scene_ids, stamps, args.rate)
-    summary: dict = {"dataset": args.dataset, "scenes": list(scene_ids), "rate_hz": args.rate}
+    summary: dict = {
+        "dataset": args.dataset,
+        "scenes": list(scene_ids),
+        "rate_hz": args.rate,
+        "check_every": args.check_every,
+    }
     for name, results in got.items():
         for n in CHECKPOINTS:
             total = evaluate(dataset, results[n], targets=targets[n]).total
