@@ -49,13 +49,15 @@ AMBIGUITY_LEGEND = (
 @dataclass
 class DatasetReport:
     """What :func:`run_and_write` wrote, as text: the translation summary, and with the
-    rotation step the scores per checkpoint (number of views), their table and the fates."""
+    rotation step the scores per checkpoint (number of views), their table, the fates and the
+    estimates kept above each confidence threshold."""
 
     summary: str
     reports: dict = field(default_factory=dict)
     table: str = ""
     fates: str = ""
     fates_legend: str = ""
+    confidence: str = ""
 
 
 def make_frontend(dataset, kind: str, oracle=None, model: str = DEFAULT_MODEL, seed: int = 0):
@@ -151,6 +153,15 @@ def run_and_write(
         f"applies); profile {dataset.profile}, front end {frontend_name}."
     )
     (out / "fates.md").write_text(f"{report.fates_legend}\n\n{report.fates}\n")
+    from posefuse.evaluation.confidence import (
+        CONFIDENCE_LEGEND,
+        confidence_markdown,
+        confidence_rows,
+    )
+
+    kept = confidence_rows(dataset, run.results, run.targets)
+    report.confidence = f"{CONFIDENCE_LEGEND}\n\n{confidence_markdown(kept)}"
+    (out / "confidence.md").write_text(f"{report.confidence}\n")
     rows = [r for n in CHECKPOINTS for r in run.ambiguity.get(n, [])]
     write_ambiguity(out / "ambiguity.csv", rows)
     (out / "ambiguity.md").write_text(
@@ -313,9 +324,10 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
         print(report.table)
         print(f"\n{report.fates_legend}")
         print(report.fates)
+        print(f"\n{report.confidence}")
         print(
             "wrote results_*views.csv, targets_*views.json, detection_rate.md, "
-            f"detection_rate.json, fates.csv and fates.md to {out}"
+            f"detection_rate.json, fates.csv, fates.md and confidence.md to {out}"
         )
     return 0
 

@@ -168,6 +168,11 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     assert at4["instances"] > 20
     assert at4["add_sym"] > random_rotation.rate() + 0.4, at4
     assert at4["precision"] >= 0.55, at4
+    # the estimates above each confidence threshold: the first row keeps them all
+    kept = (out / "confidence.md").read_text()
+    assert "| confidence >= | 2 views" in kept and kept in text + "\n"
+    first = next(line for line in kept.splitlines() if line.startswith("| 0.0 |"))
+    assert f"{100 * at4['add_sym']:.1f}%, {100 * at4['precision']:.1f}%" in first
 
 
 def test_verification_settings_from_the_command_line_replace_only_what_they_name():
