@@ -359,6 +359,30 @@ def test_tracks_keep_a_bounded_set_of_views_and_publish_the_verified_lead(
             assert np.allclose(e.T_world_obj[:3, :3], track.mixture.best().R_world_obj)
 
 
+def test_the_confidence_falls_with_the_views_that_predicted_a_part_and_missed_it(
+    small_dataset_root, default_banks
+):
+    """A track that three views in four predicted in view and did not detect publishes half
+    the confidence (the square root of its support, a quarter); its pose is the same."""
+    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.tracker.published import support_factor
+    from posefuse.evaluation.dataset import load_dataset
+
+    dataset = load_dataset(small_dataset_root)
+    estimator = _run_scene(dataset, dataset.scene_ids[0], TrackerConfig(), default_banks)
+    before = {e.object_id: e for e in estimator.estimates()}
+    track = next(
+        t
+        for t in estimator.tracks.values()
+        if before[t.object_id].confidence > 0 and support_factor(t) == 1.0
+    )
+    track.missed_views = 3 * track.views_seen
+    after = next(e for e in estimator.estimates() if e.object_id == track.object_id)
+    seen = before[track.object_id]
+    assert after.confidence == pytest.approx(0.5 * seen.confidence, rel=1e-12)
+    assert np.array_equal(after.T_world_obj, seen.T_world_obj)
+
+
 def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
     small_dataset_root, default_banks, monkeypatch
 ):
