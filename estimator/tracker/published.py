@@ -175,7 +175,10 @@ def support_factor(track: Track) -> float:
     """The share of the views that predicted the track in view that detected it, to the power
     SUPPORT_POWER: a track of no part, founded on stray detections between parts, is
     predicted in view again and again and seldom seen; a part is seen where it shows."""
-    return (track.views_seen / (track.views_seen + track.missed_views)) ** SUPPORT_POWER
+    seen, missed = max(track.views_seen, 0), max(track.missed_views, 0)
+    if seen + missed == 0:
+        return 1.0
+    return (seen / (seen + missed)) ** SUPPORT_POWER
 
 
 def _alternatives(

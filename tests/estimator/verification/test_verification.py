@@ -381,6 +381,9 @@ def test_the_confidence_falls_with_the_views_that_predicted_a_part_and_missed_it
     seen = before[track.object_id]
     assert after.confidence == pytest.approx(0.5 * seen.confidence, rel=1e-12)
     assert np.array_equal(after.T_world_obj, seen.T_world_obj)
+    # a track left with no view counted (a split took them all) publishes, unweighed
+    track.views_seen, track.missed_views = 0, 0
+    assert support_factor(track) == 1.0
 
 
 def test_a_view_from_where_the_track_was_seen_adds_nothing_and_verifies_nothing(
