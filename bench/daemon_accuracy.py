@@ -71,6 +71,8 @@ def offline(
     """The reference: per checkpoint, PoseResults of the daemon's worker run in this process on
     the scene's first views (stamps from ``stamps[(scene_id, checkpoint)]``), every waiting
     verification run after every ``check_every``-th frame and after the last."""
+    if check_every < 1:
+        raise ValueError(f"check_every: must be at least 1, got {check_every}")
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.service.codec import estimate_to_dict

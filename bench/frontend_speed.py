@@ -20,7 +20,7 @@ from posefuse.estimator.frontend.network import NetworkFrontend, input_scale_for
 from posefuse.evaluation.dataset import load_dataset
 
 
-def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple[dict, int]:
+def time_frame(frontend: NetworkFrontend, image: np.ndarray) -> tuple[dict, int]:
     """Seconds of one frame through the front end's own ``detect`` (both stages, the
     refinement pass, voting, masks and duplicate removal), and of stage one alone
     (pre-processing, the box detector and its peaks); the number of detections."""
@@ -36,7 +36,7 @@ def time_frame(frontend: NetworkFrontend, image: np.ndarray, seed: int) -> tuple
         )
         t["stage_one"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    dets = frontend.detect(image, seed)
+    dets = frontend.detect(image)
     t["total"] = time.perf_counter() - t0
     if "stage_one" in t:
         t["stage_two"] = max(t["total"] - t["stage_one"], 0.0)
@@ -60,8 +60,8 @@ def main(argv: list[str] | None = None) -> int:
         images = [ds.scene(v.scene_id).load_rgb(v.im_id) for v in views]
         frontend.detect(images[0])  # warm-up
         rows = []
-        for k, image in enumerate(images):
-            t, n = time_frame(frontend, image, k)
+        for image in images:
+            t, n = time_frame(frontend, image)
             t["n"] = n
             rows.append(t)
             key = "1-10" if n <= 10 else "11-20" if n <= 20 else "21+"

@@ -16,8 +16,8 @@ from posefuse.evaluation.scores import PoseResult, evaluate
 
 THRESHOLDS = (0.0, 0.3, 0.5, 0.6, 0.7, 0.8, 0.9)
 CONFIDENCE_LEGEND = (
-    "The confirmed estimates whose published confidence is at least a threshold, scored as the "
-    "table above scores them all (ADD-sym < 0.1 d of the instances more than 75% visible; "
+    "The confirmed estimates whose published confidence is at least a threshold, scored as "
+    "detection_rate.md scores them all (ADD-sym < 0.1 d of the instances more than 75% visible; "
     "precision: found instances per estimate kept): what a robot that acts only on those finds, "
     "and how often what it reaches for is there."
 )
@@ -26,8 +26,8 @@ CONFIDENCE_LEGEND = (
 @dataclass(frozen=True)
 class ConfidenceRow:
     """One checkpoint (``n_views``) at one ``threshold``: ``kept`` estimates pass it;
-    ``add_sym`` and ``precision`` as ``EvaluationReport.total`` gives them (NaN where none is
-    kept)."""
+    ``add_sym`` and ``precision`` as ``EvaluationReport.total`` gives them (where none is kept,
+    ADD-sym 0 and precision NaN)."""
 
     n_views: int
     threshold: float
@@ -70,7 +70,7 @@ def confidence_markdown(rows: list[ConfidenceRow]) -> str:
         for n in views:
             r = by[(n, t)]
             cells.append(f"{r.kept}, {_pct(r.add_sym)}, {_pct(r.precision)}")
-        lines.append(f"| {t:.1f} | " + " | ".join(cells) + " |")
+        lines.append(f"| {t:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -330,6 +330,7 @@ class NetworkFrontend:
         ``frame_seed`` is :func:`image_seed` of the image, so that the detections are a
         function of the pixels alone: the same frame gives the same detections in the daemon,
         live or replayed, whatever its stamp, and in ``run-dataset``."""
+        self.check_image(image)  # before its pixels are read for the seed
         frame_seed = image_seed(image) if frame_seed is None else frame_seed
         if self.crop_session is not None:
             return self._calibrated(self._detect_two_stage(image, frame_seed))
@@ -459,6 +460,7 @@ class NetworkFrontend:
             Box(index[e.obj_id], np.asarray(e.center_uv, float), np.full(2, e.side_px), hint_score)
             for e in wanted
         ]
+        self.check_image(image)
         frame_seed = image_seed(image) if frame_seed is None else frame_seed
         rng = np.random.default_rng([self.seed, frame_seed, 1])
         votes = self.stage_two_votes(image, boxes, rng)

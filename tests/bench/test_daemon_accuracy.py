@@ -32,3 +32,5 @@ def test_the_daemons_worker_publishes_what_run_dataset_scores(full_res_dataset, 
     got, want = _sorted_poses(daemon[4]), _sorted_poses(reference)
     assert got.shape == want.shape
     np.testing.assert_allclose(got, want, atol=1e-9)
+    # the "8 views" run holds the same four frames, stamped from 0: the same poses
+    np.testing.assert_allclose(_sorted_poses(daemon[8]), got, atol=1e-12)

@@ -35,7 +35,7 @@ def test_a_threshold_above_the_wrong_estimates_keeps_what_is_right(small_dataset
     assert every.precision == pytest.approx(0.5, abs=0.05) and sure.precision == 1.0
     assert none.add_sym == 0.0 and np.isnan(none.precision)
     table = confidence_markdown(list(rows.values()))
-    assert "| 0.5 |" in table and "100.0%" in table and "| 1.0 |" not in table
+    assert "| 0.5 |" in table and "100.0%" in table and "| 0.95 |" in table and "| 1 |" not in table
 
 
 def test_a_threshold_outside_zero_to_one_is_refused(small_dataset_root):

@@ -171,7 +171,7 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     # the estimates above each confidence threshold: the first row keeps them all
     kept = (out / "confidence.md").read_text()
     assert "| confidence >= | 2 views" in kept and kept in text + "\n"
-    first = next(line for line in kept.splitlines() if line.startswith("| 0.0 |"))
+    first = next(line for line in kept.splitlines() if line.startswith("| 0 |"))
     assert f"{100 * at4['add_sym']:.1f}%, {100 * at4['precision']:.1f}%" in first
 
 

@@ -238,9 +238,7 @@ def test_least_squares_center_equals_the_sum_of_projections():
     assert np.linalg.norm(got_x - center) < 0.5
 
 
-def test_the_daemons_detections_are_a_function_of_the_pixels_alone(
-    full_res_dataset, robi_catalog
-):
+def test_the_daemons_detections_are_a_function_of_the_pixels_alone(full_res_dataset, robi_catalog):
     """The daemon's detector (``service.worker.make_detector``) gives one frame the same
     detections, to the bit, whatever its stamp, and the same as ``detect`` with the image's
     own seed (what ``run-dataset`` calls); a seed is a function of every pixel."""
