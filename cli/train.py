@@ -35,7 +35,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     for root in args.tune:
         if not (Path(root) / "models").is_dir() and not any(Path(root).glob("*/0*")):
             raise PosefuseError(f"--tune: {root}: not a BOP dataset (posefuse synth writes one)")
-    if not 0.1 <= args.input_scale <= 1.0:
+    if args.input_scale is not None and not 0.1 <= args.input_scale <= 1.0:
         raise PosefuseError(f"--input-scale: {args.input_scale}: must be in [0.1, 1]")
     if args.width < 1:
         raise PosefuseError(f"--width: {args.width}: must be at least 1")
@@ -130,10 +130,11 @@ def register(subparsers) -> None:
     p.add_argument(
         "--input-scale",
         type=float,
-        default=0.5,
-        help="stage one's input: the 1280x720 view resized by this; a training set rendered for "
-        "another scale is resized from its full views, not rendered again; a resume or an "
-        "--init keeps its checkpoint's",
+        default=None,
+        help="stage one's input: the 1280x720 view resized by this (default 0.5); a training set "
+        "rendered for another scale is resized from its full views, not rendered again; a "
+        "resume keeps its checkpoint's, an --init its checkpoint's unless this is given (the "
+        "same convolutions, fine-tuned at the new scale)",
     )
     p.add_argument(
         "--crop-width",

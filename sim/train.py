@@ -94,7 +94,9 @@ class TrainConfig:
     lr: float = 2e-3
     warmup: int = 500
     width: int = 16
-    input_scale: float = INPUT_SCALE  # stage one's input: the 1280x720 view resized by this
+    # stage one's input: the 1280x720 view resized by this. None: INPUT_SCALE, or with ``init``
+    # the checkpoint's; a scale given with ``init`` fine-tunes the same convolutions at it
+    input_scale: float | None = None
     crop_width: int | None = None  # stage two's width (None: ``width``)
     crop_box_channel: bool = False  # stage two gets the box as a fourth input channel
     dihedral: bool = False  # flips upside down and transposes besides mirrors (train_targets)
@@ -714,10 +716,12 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         config = dataclasses.replace(
             config,
             width=base_width,
-            input_scale=float(stored.get("input_scale", INPUT_SCALE)),
+            input_scale=config.input_scale or float(stored.get("input_scale", INPUT_SCALE)),
             crop_width=crop_width if crop_width != base_width else None,
             crop_box_channel=bool(stored.get("crop_box_channel")) or config.crop_box_channel,
         )
+    if config.input_scale is None:
+        config = dataclasses.replace(config, input_scale=INPUT_SCALE)
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
     spec = RenderSpec(

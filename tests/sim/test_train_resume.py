@@ -360,6 +360,20 @@ def test_another_input_scale_is_the_cards_and_the_front_end_runs_at_it(tmp_path)
         _config(tmp_path, resume=str(out.with_suffix(".ckpt")), extend=(1, 1e-3)),
     )
     assert _weights(out.with_suffix(".ckpt"))[1]["config"]["input_scale"] == 0.625
+    # a fine-tune keeps it unless told another: the same convolutions then learn at that one
+    kept = tmp_path / "kept" / "m.onnx"
+    train(DEFAULT_CATALOG, kept, _config(tmp_path, init=str(out.with_suffix(".ckpt")), seed=1))
+    assert _weights(kept.with_suffix(".ckpt"))[1]["config"]["input_scale"] == 0.625
+    told = tmp_path / "told" / "m.onnx"
+    card = train(
+        DEFAULT_CATALOG,
+        told,
+        _config(tmp_path, init=str(out.with_suffix(".ckpt")), input_scale=0.5, seed=1),
+    )
+    assert card["input_scale"] == 0.5
+    assert NetworkFrontend(told, load_catalog(DEFAULT_CATALOG)).infer(
+        np.zeros((720, 1280, 3), np.uint8)
+    ).shape[-2:] == (368 // 4, 640 // 4)
 
 
 def test_frozen_backbones_keep_their_weights_and_statistics_while_the_heads_learn(tmp_path):
