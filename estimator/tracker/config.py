@@ -51,6 +51,14 @@ class TrackerConfig:
     max_pending_views: int = 8
     # a track keeps this many views for its translation; older ones are folded into its prior
     max_track_views: int = 30
+    # a track's translation covariance is widened by the scatter of its centres about the
+    # solution when they scatter more than their covariances say (the a posteriori variance
+    # factor, ``translation.gaussian.variance_factor``, shrunk towards 1 by this many prior
+    # degrees of freedom); None: the inverse information alone. 0 chosen on the tuning sets
+    # (robi 4343, 4444; mixed 4242, 4445): piles' mean translation NEES at 8 views 199 -> 99 and
+    # 515 -> 193, precision 34.1 -> 37.6 and 50.5 -> 52.8%, ADD-sym not lower anywhere; 4 gave
+    # less of each (docs/lab/2026-12-05-translation-variance-factor.md)
+    translation_variance_dof: float | None = 0.0
     # verification and refinement in the update (False), or later, track by track, when
     # asked (MultiViewEstimator.check_next): the daemon runs them between frames, so a frame
     # never waits for them; checked after every update, the estimates are the same

@@ -131,6 +131,15 @@ class TrackBook:
         self.held: dict[int, list[HeldDetection]] = {}  # per class, waiting for a partner
         self.view_serial = 0  # views seen, for how long a detection is held
 
+    def _estimate(self, obs, prior_mean, prior_cov, start=None) -> TranslationEstimate:
+        return estimate_translation(
+            obs,
+            prior_mean,
+            prior_cov,
+            start=start,
+            variance_prior_dof=self.config.translation_variance_dof,
+        )
+
     def classes(self) -> set[int]:
         return {t.obj_id for t in self.tracks.values()}
 
@@ -139,7 +148,7 @@ class TrackBook:
         return [t for t in self.tracks.values() if t.obj_id == obj_id]
 
     def new_track(self, obj_id: int, obs, prior_mean, prior_cov, refs: list[ViewRef]) -> Track:
-        estimate = estimate_translation(obs, prior_mean, prior_cov)
+        estimate = self._estimate(obs, prior_mean, prior_cov)
         serial = self.serial.get(obj_id, 0) + 1
         self.serial[obj_id] = serial
         object_id = f"{self.catalog[obj_id].name}-{serial:03d}"
@@ -210,7 +219,7 @@ class TrackBook:
                 track.obs, track.prior_mean, track.prior_cov, track.estimate.t_world_obj
             )
             track.refs.pop(0)
-        track.estimate = estimate_translation(
+        track.estimate = self._estimate(
             track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
         )
         track.last_stamp_ns = max(track.last_stamp_ns, ref.stamp_ns)
@@ -253,7 +262,7 @@ class TrackBook:
             track.edge_views = [v for v in track.edge_views if v.stamp_ns not in gone_stamps]
             track.detections = [d for d in track.detections if d not in gone_ids]
             track.views_seen -= len(gone)
-            track.estimate = estimate_translation(
+            track.estimate = self._estimate(
                 track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
             )
             if len(gone) < 2:
@@ -276,7 +285,7 @@ class TrackBook:
             pair = triangulate_pair(first[0], first[1], self.config.founding)
             if pair is None:
                 continue
-            est = estimate_translation(split_obs, pair.prior_mean, pair.prior_cov)
+            est = self._estimate(split_obs, pair.prior_mean, pair.prior_cov)
             if np.any(est.chi2 > self.config.splitting.outlier_chi2):
                 continue
             new = self.new_track(track.obj_id, split_obs, pair.prior_mean, pair.prior_cov, gone)
@@ -331,7 +340,7 @@ class TrackBook:
                 for comp in gone.mixture.components:
                     for R, c in comp.members:
                         keep.mixture.add(R, c)
-        keep.estimate = estimate_translation(
+        keep.estimate = self._estimate(
             keep.obs, keep.prior_mean, keep.prior_cov, start=keep.estimate.t_world_obj
         )
 

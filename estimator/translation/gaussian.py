@@ -223,6 +223,7 @@ def estimate_translation(
     huber_k: float = HUBER_K,
     max_iterations: int = 15,
     tolerance: float = 1e-6,
+    variance_prior_dof: float | None = None,
 ) -> TranslationEstimate:
     """Robust Gauss-Newton for the translation from all views of a track.
 
@@ -231,6 +232,8 @@ def estimate_translation(
         prior_mean, prior_cov: (3,), (3, 3) the first-view prior.
         start: (3,) initial guess (the previous estimate); defaults to the prior mean.
         tolerance: stop when the step is below this many metres.
+        variance_prior_dof: None, the covariance is the inverse information alone; else it is
+            multiplied by :func:`variance_factor` of the centres' scatter with this prior.
     """
     prior_info = np.linalg.inv(prior_cov)
     t = np.array(prior_mean if start is None else start, dtype=np.float64)
@@ -255,8 +258,34 @@ def estimate_translation(
     w = _huber_weights(s, huber_k) * (z > MIN_DEPTH)
     H = prior_info + (J.transpose(0, 2, 1) @ (w[:, None, None] * (obs.info @ J))).sum(0)
     cov = np.linalg.inv(H)
+    if variance_prior_dof is not None:
+        cov = cov * variance_factor(w, s, variance_prior_dof)
     cov = 0.5 * (cov + cov.T)
     return TranslationEstimate(t, cov, len(obs), w, s, cost)
+
+
+def variance_factor(weights: np.ndarray, chi2: np.ndarray, prior_dof: float) -> float:
+    """How much wider the centres scatter about the solution than their covariances say: the a
+    posteriori variance factor of the weighted least squares, ``sum_k w_k s_k / (2N - 3)``,
+    shrunk towards 1 as if ``prior_dof`` more degrees of freedom had scattered as expected, and
+    never below 1 (the centres' covariances are calibrated; scatter can only say they are not
+    for this track, as when its views hold detections of two parts).
+
+    Args:
+        weights: (N,) the views' Huber weights at the solution (0 for a view behind a camera).
+        chi2: (N,) their squared Mahalanobis residuals.
+        prior_dof: >= 0; 0 takes the scatter as it is, more trusts it less.
+    Returns:
+        the factor (>= 1) the covariance is multiplied by; 1 with fewer than two views.
+    """
+    if prior_dof < 0:
+        raise ValueError(f"prior_dof must be at least 0, got {prior_dof}")
+    used = weights > 0
+    dof = 2 * int(np.count_nonzero(used)) - 3
+    if dof < 1:
+        return 1.0
+    scatter = float(np.sum(weights[used] * chi2[used]))
+    return max(1.0, (scatter + prior_dof) / (dof + prior_dof))
 
 
 def _huber_weights(s: np.ndarray, k: float) -> np.ndarray:

@@ -10,6 +10,7 @@ from posefuse.estimator.translation.gaussian import (
     estimate_translation,
     predict,
     prior_from_first_view,
+    variance_factor,
 )
 from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec, sample_views
 
@@ -102,6 +103,40 @@ def test_outlier_view_is_downweighted():
     est = estimate_translation(obs, mean, cov)
     assert est.weights[3] < 0.2 and np.all(np.delete(est.weights, 3) > 0.5)
     assert np.linalg.norm(est.t_world_obj - t_true) < 3e-3
+
+
+def test_the_variance_factor_is_the_weighted_scatter_per_degree_of_freedom_never_below_one():
+    w = np.array([1.0, 1.0, 0.5, 0.0])
+    s = np.array([4.0, 6.0, 20.0, 1e9])  # the last view has no weight: not counted at all
+    # three views used: 2 * 3 - 3 = 3 degrees of freedom, scatter 4 + 6 + 10 = 20
+    assert variance_factor(w, s, 0.0) == pytest.approx(20 / 3)
+    assert variance_factor(w, s, 3.0) == pytest.approx(23 / 6)  # shrunk towards 1
+    assert variance_factor(w, np.array([0.1, 0.2, 0.1, 0.0]), 0.0) == 1.0
+    assert variance_factor(np.ones(1), np.array([50.0]), 0.0) == 1.0  # one view: no dof
+    with pytest.raises(ValueError, match="prior_dof"):
+        variance_factor(w, s, -1.0)
+
+
+def test_centres_of_two_parts_widen_the_covariance_and_consistent_ones_do_not():
+    t_true = np.array([0.02, 0.01, 0.03])
+    T_wcs = _views(6, 5)
+    obs = _observe(t_true, T_wcs, noise=0.5, seed=6)
+    mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], 110.0, 0.08)
+    plain = estimate_translation(obs, mean, cov)
+    honest = estimate_translation(obs, mean, cov, variance_prior_dof=0.0)
+    np.testing.assert_array_equal(honest.cov, plain.cov)  # they scatter less than said
+    # half the views see a neighbour 25 mm away: each view agrees with some point, not one
+    other = _observe(t_true + [0.025, 0.0, 0.0], T_wcs, noise=0.5, seed=7)
+    uv = np.where(np.arange(6)[:, None] % 2 == 1, other.uv, obs.uv)
+    mixed = CenterObservations(obs.R_cam_world, obs.t_cam_world, obs.K, uv, obs.info, obs.stamp_ns)
+    plain = estimate_translation(mixed, mean, cov)
+    honest = estimate_translation(mixed, mean, cov, variance_prior_dof=0.0)
+    np.testing.assert_allclose(honest.t_world_obj, plain.t_world_obj)  # the same solution
+    factor = variance_factor(plain.weights, plain.chi2, 0.0)
+    assert factor > 5
+    np.testing.assert_allclose(honest.cov, plain.cov * factor, rtol=1e-9)
+    error = plain.t_world_obj - t_true
+    assert error @ np.linalg.solve(plain.cov, error) > 3 * (error @ np.linalg.solve(honest.cov, error))
 
 
 @pytest.mark.parametrize(
