@@ -200,3 +200,24 @@ def test_a_track_the_views_stop_supporting_falls_back_to_tentative(robi_catalog,
     assert all(plain.tracks[k].status == CONFIRMED for k in two)
     with pytest.raises(ValueError, match="min_support"):
         TrackerConfig(min_support=1.5)
+
+
+def test_the_centres_scatter_only_ever_widens_a_tracks_covariance(robi_catalog, runs):
+    """The default widens a track's translation covariance by its centres' scatter
+    (``translation_variance_dof``); None leaves the inverse information alone. Where a track's
+    views agree, the two are the same; nowhere is the widened one tighter."""
+    seq, est_default, _, _ = runs[0]
+    est_plain, _, _ = _run(robi_catalog, seq, TrackerConfig(translation_variance_dof=None))
+    assert TrackerConfig().translation_variance_dof == 0.0
+    same, wider = 0, 0
+    for oid, track in est_default.tracks.items():
+        plain = est_plain.tracks.get(oid)
+        if plain is None or len(plain.obs) != len(track.obs):
+            continue  # the tracks went apart (a wider gate, another founding)
+        gap = np.linalg.eigvalsh(track.estimate.cov - plain.estimate.cov)
+        assert gap.min() >= -1e-12 * np.abs(plain.estimate.cov).max(), oid
+        if np.allclose(track.estimate.cov, plain.estimate.cov, rtol=1e-9, atol=0):
+            same += 1
+        else:
+            wider += 1
+    assert same >= 1 and wider >= 1, (same, wider)
