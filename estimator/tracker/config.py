@@ -67,6 +67,11 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
             raise ValueError(f"invalid tracker config: {self}")
+        if self.translation_variance_dof is not None and not self.translation_variance_dof >= 0:
+            raise ValueError(
+                "translation_variance_dof must be None or at least 0, got "
+                f"{self.translation_variance_dof}"
+            )
         if not 0.0 <= self.min_support <= 1.0 or self.support_after < 1:
             raise ValueError(
                 f"min_support must be in [0, 1] and support_after >= 1, got {self.min_support} "

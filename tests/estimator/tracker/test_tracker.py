@@ -221,3 +221,6 @@ def test_the_centres_scatter_only_ever_widens_a_tracks_covariance(robi_catalog, 
         else:
             wider += 1
     assert same >= 1 and wider >= 1, (same, wider)
+    for bad in (-1.0, float("nan")):  # refused when configured, not at the first update
+        with pytest.raises(ValueError, match="translation_variance_dof"):
+            TrackerConfig(translation_variance_dof=bad)
