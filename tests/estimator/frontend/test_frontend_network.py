@@ -1,6 +1,7 @@
 """The learned front end: voting, the ONNX model and its card, the shipped model against a
 rendered bin's truth, bad input, a training smoke test."""
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -285,6 +286,31 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
     assert set(fates) <= set(FATES)
     assert len(fates) == score.n_instances
     assert fates.count("found") == round(score.recall * score.n_instances)
+
+
+def test_a_part_stage_one_scored_below_its_threshold_is_told_from_one_it_never_saw(
+    full_res_dataset, robi_catalog
+):
+    """With stage one's threshold raised from the card's to 0.9, parts move to "a peak below
+    the threshold", and a part with no peak at the card's threshold has none at 0.9 either;
+    each part's row names its class."""
+    from posefuse.bench.frontend_misses import view_fates
+
+    dataset = load_dataset(full_res_dataset)
+    card_threshold = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    strict = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    strict.two_stage = dataclasses.replace(strict.two_stage, min_score=0.9)
+    at_card, at_strict = [], []
+    for view in dataset.views():
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        rows = view_fates(card_threshold, image, view)[2]
+        assert [o for o, _, _ in rows] == [g.obj_id for g in view.gts if g.visib_fract > 0.75]
+        at_card += [f for _, f, _ in rows]
+        at_strict += [f for _, f, _ in view_fates(strict, image, view)[2]]
+    below = "a peak below the threshold"
+    assert at_strict.count(below) > at_card.count(below)
+    assert at_strict.count(below) >= 3
+    assert all(b == "no box" for a, b in zip(at_card, at_strict, strict=True) if a == "no box")
 
 
 def test_stage_two_where_parts_are_expected_finds_them_and_not_where_none_is(
