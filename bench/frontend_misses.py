@@ -27,7 +27,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections import Counter
+from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from posefuse.estimator.frontend.network import NetworkFrontend, image_seed, input_scale_for
@@ -58,9 +60,21 @@ def weak_peaks(fe: NetworkFrontend, image: np.ndarray) -> list[Box]:
     return [b for b in low if b.score < fe.two_stage.min_score]
 
 
+@dataclass(frozen=True)
+class PartFate:
+    """Where the front end left one part of one view: its class, its fate (one of FATES), the
+    stage-two center's error in px where it reached stage two (else None), and its visible box
+    (x, y, w, h) in pixels."""
+
+    obj_id: int
+    fate: str
+    error: float | None
+    bbox_visib: tuple[float, float, float, float]
+
+
 def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
     """(fates, stage-two errors in px, rows) of one view's parts (visib > 0.75); rows: one
-    (obj_id, fate, stage-two error in px or None) per part, in the fates' order."""
+    :class:`PartFate` per part, in the fates' order."""
     boxes = fe.boxes(image)
     weak_boxes = weak_peaks(fe, image)
     first_pass = fe.stage_two(image, boxes, np.random.default_rng([fe.seed, image_seed(image)]))
@@ -77,10 +91,11 @@ def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
     for j, gt in enumerate(gts):
         if gt.visib_fract <= MIN_VISIB:
             continue
+        x, y, w, h = (float(v) for v in gt.bbox_visib)
+        box = (x, y, w, h)
         if j in found:
-            rows.append((gt.obj_id, "found", None))
+            rows.append(PartFate(gt.obj_id, "found", None, box))
             continue
-        x, y, w, h = gt.bbox_visib
         visible_center = np.array([x + w / 2, y + h / 2])
         reach = BOX_NEAR * max(w, h)
         near = [
@@ -93,11 +108,12 @@ def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
                 np.linalg.norm(b.center - visible_center) <= reach
                 for b in of_class(weak_boxes, gt.obj_id)
             )
-            rows.append((gt.obj_id, "a peak below the threshold" if seen else "no box", None))
+            fate = "a peak below the threshold" if seen else "no box"
+            rows.append(PartFate(gt.obj_id, fate, None, box))
             continue
         det = first_pass[min(near)[1]]
         if det is None:
-            rows.append((gt.obj_id, "stage two empty", None))
+            rows.append(PartFate(gt.obj_id, "stage two empty", None, box))
             continue
         error = float(np.linalg.norm(det.center_uv - truth[j]))
         others = np.delete(truth, j, axis=0)
@@ -107,19 +123,91 @@ def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
             fate = "stage two on a neighbour"
         else:
             fate = "stage two off"
-        rows.append((gt.obj_id, fate, error))
-    fates = [f for _, f, _ in rows]
-    errors = [e for _, _, e in rows if e is not None]
+        rows.append(PartFate(gt.obj_id, fate, error, box))
+    fates = [r.fate for r in rows]
+    errors = [r.error for r in rows if r.error is not None]
     return fates, errors, rows
 
 
-def _table_row(label: str, rows: list) -> str:
-    counts = Counter(f for _, f, _ in rows)
+# the picture's colours (RGB), by fate
+FATE_COLOURS = {
+    "found": (40, 200, 40),
+    "a peak below the threshold": (255, 150, 0),
+    "no box": (220, 30, 30),
+    "stage two empty": (160, 60, 220),
+    "stage two on a neighbour": (230, 230, 40),
+    "stage two off": (250, 110, 200),
+    "lost after stage two": (40, 200, 230),
+}
+
+
+LEGEND_WIDTH = 250  # px, left of the view
+WEAK_PEAK_COLOUR = (255, 210, 90)  # the rings of stage one's peaks below the threshold
+
+
+def fate_picture(fe: NetworkFrontend, image: np.ndarray, view) -> np.ndarray:
+    """(h, w, 3) uint8 RGB: the view with each part's visible box in its fate's colour
+    (FATE_COLOURS), stage one's boxes at the card's threshold as filled dots and its peaks
+    below it as rings, and a legend; cut to the parts' region."""
+    out = image.copy()
+    rows = view_fates(fe, image, view)[2]
+    for r in rows:
+        x, y, w, h = (int(round(v)) for v in r.bbox_visib)
+        cv2.rectangle(out, (x, y), (x + w, y + h), FATE_COLOURS[r.fate], 2)
+    for b in fe.boxes(image):
+        cv2.circle(out, tuple(int(round(v)) for v in b.center), 5, (0, 0, 255), -1)
+    for b in weak_peaks(fe, image):
+        cv2.circle(out, tuple(int(round(v)) for v in b.center), 5, WEAK_PEAK_COLOUR, 2)
+    if rows:  # the parts' region, with a margin
+        boxes = np.array([r.bbox_visib for r in rows])
+        x0 = max(int(boxes[:, 0].min()) - 40, 0)
+        y0 = max(int(boxes[:, 1].min()) - 40, 0)
+        x1 = min(int((boxes[:, 0] + boxes[:, 2]).max()) + 40, out.shape[1])
+        y1 = min(int((boxes[:, 1] + boxes[:, 3]).max()) + 40, out.shape[0])
+        out = out[y0:y1, x0:x1]
+    legend = np.full((max(out.shape[0], 220), LEGEND_WIDTH, 3), 255, np.uint8)
+
+    def label(text: str, y: int) -> None:
+        cv2.putText(legend, text, (36, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+
+    for k, (fate, colour) in enumerate(FATE_COLOURS.items()):
+        y = 20 + 24 * k
+        cv2.rectangle(legend, (10, y - 12), (28, y + 4), colour, -1)
+        label(fate, y)
+    y = 20 + 24 * len(FATE_COLOURS)
+    cv2.circle(legend, (19, y - 4), 5, (0, 0, 255), -1)
+    label("stage one's box", y)
+    cv2.circle(legend, (19, y + 20), 5, WEAK_PEAK_COLOUR, 2)
+    label("a peak below the threshold", y + 24)
+    canvas = np.full((legend.shape[0], out.shape[1], 3), 255, np.uint8)
+    canvas[: out.shape[0]] = out
+    return np.hstack([legend, canvas])
+
+
+def _table_row(label: str, rows: list[PartFate]) -> str:
+    counts = Counter(r.fate for r in rows)
     n = len(rows)
     shares = " | ".join(f"{counts[f]} ({counts[f] / max(n, 1):.0%})" for f in FATES)
-    errors = [e for _, _, e in rows if e is not None]
+    errors = [r.error for r in rows if r.error is not None]
     median = f"{np.median(errors):.1f}" if errors else "-"
     return f"| {label} | {n} | {shares} | {median} |"
+
+
+def write_picture(root: str, model: str, view_key: str, png: str) -> None:
+    """fate_picture of view ``SCENE:IM`` of the dataset at ``root``, written to ``png``."""
+    try:
+        scene_id, im_id = (int(v) for v in view_key.split(":"))
+    except ValueError:
+        raise SystemExit(f"--picture: expected SCENE:IM such as 0:0, got {view_key!r}") from None
+    ds = load_dataset(root)
+    views = [v for v in ds.views() if (v.scene_id, v.im_id) == (scene_id, im_id)]
+    if not views:
+        raise SystemExit(f"--picture: {root} has no view {view_key}")
+    fe = NetworkFrontend(model, ds.catalog)
+    image = ds.scene(scene_id).load_rgb(im_id)
+    picture = fate_picture(fe, image, views[0])
+    cv2.imwrite(png, cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+    print(f"wrote {png}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,7 +217,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--by-object", action="store_true", help="a row per part type too, under each dataset's"
     )
+    parser.add_argument(
+        "--picture",
+        nargs=2,
+        metavar=("SCENE:IM", "PNG"),
+        help="also draw that view of the first dataset, each part in its fate's colour",
+    )
     args = parser.parse_args(argv)
+    if args.picture:
+        write_picture(args.dataset[0], args.model, *args.picture)
     print(f"model {args.model}")
     print("| dataset | parts | " + " | ".join(FATES) + " | stage-two error, median px |")
     print("|---|---|" + "---|" * len(FATES) + "---|")
@@ -138,15 +234,15 @@ def main(argv: list[str] | None = None) -> int:
         fe = NetworkFrontend(args.model, ds.catalog)
         if fe.crop_session is None:
             raise SystemExit(f"{args.model}: not a two-stage model")
-        rows: list = []
+        rows: list[PartFate] = []
         for view in ds.views():
             image = ds.scene(view.scene_id).load_rgb(view.im_id)
             rows += view_fates(fe, image, view)[2]
         print(_table_row(root, rows))
         if args.by_object:
-            for obj_id in sorted({o for o, _, _ in rows}):
+            for obj_id in sorted({r.obj_id for r in rows}):
                 label = f"{root}: {ds.catalog[obj_id].name}"
-                print(_table_row(label, [r for r in rows if r[0] == obj_id]))
+                print(_table_row(label, [r for r in rows if r.obj_id == obj_id]))
     return 0
 
 

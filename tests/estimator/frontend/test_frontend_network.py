@@ -4,6 +4,7 @@ rendered bin's truth, bad input, a training smoke test."""
 import dataclasses
 import json
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -293,8 +294,13 @@ def test_a_part_stage_one_scored_below_its_threshold_is_told_from_one_it_never_s
 ):
     """With stage one's threshold raised from the card's to 0.9, parts move to "a peak below
     the threshold", and a part with no peak at the card's threshold has none at 0.9 either;
-    each part's row names its class."""
-    from posefuse.bench.frontend_misses import view_fates
+    each part's row names its class; the picture draws both fates."""
+    from posefuse.bench.frontend_misses import (
+        FATE_COLOURS,
+        LEGEND_WIDTH,
+        fate_picture,
+        view_fates,
+    )
 
     dataset = load_dataset(full_res_dataset)
     card_threshold = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
@@ -304,11 +310,17 @@ def test_a_part_stage_one_scored_below_its_threshold_is_told_from_one_it_never_s
     for view in dataset.views():
         image = dataset.scene(view.scene_id).load_rgb(view.im_id)
         rows = view_fates(card_threshold, image, view)[2]
-        assert [o for o, _, _ in rows] == [g.obj_id for g in view.gts if g.visib_fract > 0.75]
-        at_card += [f for _, f, _ in rows]
-        at_strict += [f for _, f, _ in view_fates(strict, image, view)[2]]
+        assert [r.obj_id for r in rows] == [g.obj_id for g in view.gts if g.visib_fract > 0.75]
+        at_card += [r.fate for r in rows]
+        at_strict += [r.fate for r in view_fates(strict, image, view)[2]]
     below = "a peak below the threshold"
     assert at_strict.count(below) > at_card.count(below)
+    picture = fate_picture(strict, image, view)  # the last view's, right of a legend
+    assert picture.dtype == np.uint8 and picture.ndim == 3 and picture.shape[2] == 3
+    last = Counter(r.fate for r in view_fates(strict, image, view)[2])
+    for fate in ("found", below):  # a box's outline in the fate's colour, where there is one
+        drawn = np.all(picture[:, LEGEND_WIDTH:] == FATE_COLOURS[fate], axis=2).sum()
+        assert (drawn > 100) == (last[fate] > 0)
     assert at_strict.count(below) >= 3
     assert all(b == "no box" for a, b in zip(at_card, at_strict, strict=True) if a == "no box")
 
