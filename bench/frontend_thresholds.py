@@ -2,10 +2,12 @@
 
 python -m posefuse.bench.frontend_thresholds --model models/robi_like.onnx --dataset DIR
     [--dataset DIR ...] [--scores 0.2 0.3 ...] [--duplicates 0.3 0.5 ...] [--refine 0 1]
+    [--by-class]
 
 Every (peak threshold, duplicate factor) pair runs the front end over every view and is
 scored with ``score_frontend``'s matching (recall of parts more
-than 75% visible, precision, median center error, NEES). Run it on tuning seeds only.
+than 75% visible, precision, median center error, NEES); ``--by-class`` adds a row per class
+under each (its detections against its parts). Run it on tuning seeds only.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scores", type=float, nargs="+", default=[0.15, 0.2, 0.3, 0.4, 0.5])
     parser.add_argument("--duplicates", type=float, nargs="+", default=[0.3, 0.5, 0.7])
     parser.add_argument("--refine", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--by-class", action="store_true", help="a row per class too")
     args = parser.parse_args(argv)
     for root in args.dataset:
         ds = load_dataset(root)
@@ -41,15 +44,23 @@ def main(argv: list[str] | None = None) -> int:
                 base, min_score=t, duplicate_factor=f, refine_passes=r
             )
 
-            def detect(view, fe=fe, images=images):
-                image = images[(view.scene_id, view.im_id)]
-                return fe.detect(image)
+            found = {(v.scene_id, v.im_id): fe.detect(images[(v.scene_id, v.im_id)]) for v in views}
 
-            s = score_frontend(ds, detect, views)
-            print(
-                f"| {t:.2f} | {f:.2f} | {r} | {s.recall:.4f} | {s.precision:.4f} | "
-                f"{s.median_center_error_px:.2f} | {s.mean_nees:.2f} |"
-            )
+            def detect(view, found=found):
+                return found[(view.scene_id, view.im_id)]
+
+            rows = [("", score_frontend(ds, detect, views))]
+            if args.by_class:
+                classes = sorted({g.obj_id for v in views for g in v.gts})
+                rows += [
+                    (f" {ds.catalog[k].name}", score_frontend(ds, detect, views, obj_id=k))
+                    for k in classes
+                ]
+            for label, s in rows:
+                print(
+                    f"| {t:.2f}{label} | {f:.2f} | {r} | {s.recall:.4f} | {s.precision:.4f} | "
+                    f"{s.median_center_error_px:.2f} | {s.mean_nees:.2f} |"
+                )
     return 0
 
 

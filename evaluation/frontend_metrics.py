@@ -81,21 +81,32 @@ def match_to_truth(dets, view, max_px: float = 15.0, any_class: bool = False):
 
 
 def score_frontend(
-    dataset, detect, views, min_visib: float = 0.75, max_px: float = 15.0, any_class: bool = False
+    dataset,
+    detect,
+    views,
+    min_visib: float = 0.75,
+    max_px: float = 15.0,
+    any_class: bool = False,
+    obj_id: int | None = None,
 ):
     """detect(view) -> list[Detection]; views: the BopViews to score; any_class: a detection
-    may match an instance of any class (a generalist's, see ``match_centers``)."""
+    may match an instance of any class (a generalist's, see ``match_centers``); obj_id: score
+    that class alone (its detections against its instances; not with any_class)."""
+    if obj_id is not None and any_class:
+        raise ValueError("score_frontend: obj_id scores one class; a generalist's has none")
     n_inst = n_found = n_det = n_det_ok = n_views = 0
     errors, nees = [], []
     for view in views:
         n_views += 1
         dets = detect(view)
+        if obj_id is not None:
+            dets = [d for d in dets if d.obj_id == obj_id]
         n_det += len(dets)
         gts, truth, pairs = match_to_truth(dets, view, max_px, any_class)
         matched = {j: i for i, j in pairs.items()}
         n_det_ok += len(matched)
         for j, g in enumerate(gts):
-            if g.visib_fract <= min_visib:
+            if g.visib_fract <= min_visib or (obj_id is not None and g.obj_id != obj_id):
                 continue
             n_inst += 1
             if j in matched:

@@ -287,6 +287,19 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
     assert set(fates) <= set(FATES)
     assert len(fates) == score.n_instances
     assert fates.count("found") == round(score.recall * score.n_instances)
+    # scored class by class, the parts, the detections and the found add up to the whole
+    detections = {v.im_id: frontend.detect(images[v.im_id]) for v in dataset.views()}
+    per_class = [
+        score_frontend(dataset, lambda v: detections[v.im_id], list(dataset.views()), obj_id=k)
+        for k in sorted({g.obj_id for v in dataset.views() for g in v.gts})
+    ]
+    assert len(per_class) >= 2
+    assert sum(c.n_instances for c in per_class) == score.n_instances
+    assert sum(c.n_detections for c in per_class) == score.n_detections
+    found = sum(round(c.recall * c.n_instances) for c in per_class if c.n_instances)
+    assert found == fates.count("found")
+    with pytest.raises(ValueError, match="one class"):
+        score_frontend(dataset, lambda v: [], [], any_class=True, obj_id=1)
 
 
 def test_a_part_stage_one_scored_below_its_threshold_is_told_from_one_it_never_saw(
