@@ -1,7 +1,7 @@
 """Where the two-stage front end loses the parts it misses, stage by stage.
 
     python -m posefuse.bench.frontend_misses --dataset DIR [--dataset DIR2] [--model M.onnx]
-        [--by-object]
+        [--by-object] [--picture SCENE:IM PNG]
 
 Per annotated part more than 75% visible, in every view, the first of these that applies:
 
@@ -20,6 +20,8 @@ Per annotated part more than 75% visible, in every view, the first of these that
 
 It also prints, over the missed parts that reached stage two, the median distance in pixels from
 their box's stage-two center to their projected origin. The shares tell which stage to work on.
+``--by-object`` adds a row per part type; ``--picture`` draws one view of the first dataset with
+every part boxed in its fate's colour (:func:`fate_picture`).
 """
 
 from __future__ import annotations
