@@ -136,7 +136,9 @@ def test_centres_of_two_parts_widen_the_covariance_and_consistent_ones_do_not():
     assert factor > 5
     np.testing.assert_allclose(honest.cov, plain.cov * factor, rtol=1e-9)
     error = plain.t_world_obj - t_true
-    assert error @ np.linalg.solve(plain.cov, error) > 3 * (error @ np.linalg.solve(honest.cov, error))
+    assert error @ np.linalg.solve(plain.cov, error) > 3 * (
+        error @ np.linalg.solve(honest.cov, error)
+    )
 
 
 @pytest.mark.parametrize(
