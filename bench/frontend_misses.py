@@ -55,11 +55,13 @@ MIN_VISIB = 0.75
 LOW_PEAK = 0.1  # stage one's peaks down to this count as "seen, below the threshold"
 
 
-def weak_peaks(fe: NetworkFrontend, image: np.ndarray) -> list[Box]:
-    """Stage one's boxes whose peak scored in [LOW_PEAK, the card's min_score)."""
-    config = dataclasses.replace(fe.two_stage, min_score=min(LOW_PEAK, fe.two_stage.min_score))
-    low = decode_boxes(fe.infer(image), input_scale_for(image.shape[:2], fe.card), config)
-    return [b for b in low if b.score < fe.two_stage.min_score]
+def stage_one(fe: NetworkFrontend, image: np.ndarray) -> tuple[list[Box], list[Box]]:
+    """Stage one's boxes (as ``fe.boxes``) and its peaks that scored in [LOW_PEAK, the card's
+    min_score), from one run of the detector."""
+    out, scale, config = fe.infer(image), input_scale_for(image.shape[:2], fe.card), fe.two_stage
+    low = dataclasses.replace(config, min_score=min(LOW_PEAK, config.min_score))
+    weak = [b for b in decode_boxes(out, scale, low) if b.score < config.min_score]
+    return decode_boxes(out, scale, config), weak
 
 
 @dataclass(frozen=True)
@@ -77,8 +79,7 @@ class PartFate:
 def view_fates(fe: NetworkFrontend, image: np.ndarray, view):
     """(fates, stage-two errors in px, rows) of one view's parts (visib > 0.75); rows: one
     :class:`PartFate` per part, in the fates' order."""
-    boxes = fe.boxes(image)
-    weak_boxes = weak_peaks(fe, image)
+    boxes, weak_boxes = stage_one(fe, image)
     first_pass = fe.stage_two(image, boxes, np.random.default_rng([fe.seed, image_seed(image)]))
     final = fe.detect(image)
     agnostic = fe.card.agnostic  # a generalist's boxes and detections are of any class
@@ -156,9 +157,10 @@ def fate_picture(fe: NetworkFrontend, image: np.ndarray, view) -> np.ndarray:
     for r in rows:
         x, y, w, h = (int(round(v)) for v in r.bbox_visib)
         cv2.rectangle(out, (x, y), (x + w, y + h), FATE_COLOURS[r.fate], 2)
-    for b in fe.boxes(image):
+    boxes, weak = stage_one(fe, image)
+    for b in boxes:
         cv2.circle(out, tuple(int(round(v)) for v in b.center), 5, (0, 0, 255), -1)
-    for b in weak_peaks(fe, image):
+    for b in weak:
         cv2.circle(out, tuple(int(round(v)) for v in b.center), 5, WEAK_PEAK_COLOUR, 2)
     if rows:  # the parts' region, with a margin
         boxes = np.array([r.bbox_visib for r in rows])
