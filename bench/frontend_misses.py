@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from posefuse.estimator.frontend.network import NetworkFrontend, image_seed, input_scale_for
-from posefuse.estimator.frontend.two_stage import Box, decode_boxes
+from posefuse.estimator.frontend.network import NetworkFrontend, image_seed
+from posefuse.estimator.frontend.two_stage import Box
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.frontend_metrics import match_to_truth
 from posefuse.service.resources import DEFAULT_MODEL
@@ -58,10 +58,10 @@ LOW_PEAK = 0.1  # stage one's peaks down to this count as "seen, below the thres
 def stage_one(fe: NetworkFrontend, image: np.ndarray) -> tuple[list[Box], list[Box]]:
     """Stage one's boxes (as ``fe.boxes``) and its peaks that scored in [LOW_PEAK, the card's
     min_score), from one run of the detector."""
-    out, scale, config = fe.infer(image), input_scale_for(image.shape[:2], fe.card), fe.two_stage
+    config = fe.two_stage
     low = dataclasses.replace(config, min_score=min(LOW_PEAK, config.min_score))
-    weak = [b for b in decode_boxes(out, scale, low) if b.score < config.min_score]
-    return decode_boxes(out, scale, config), weak
+    boxes, low_boxes = fe.stage_one(image, [config, low])
+    return boxes, [b for b in low_boxes if b.score < config.min_score]
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from posefuse.estimator.frontend.network import NetworkFrontend, input_scale_for
+from posefuse.estimator.frontend.network import NetworkFrontend
 from posefuse.evaluation.dataset import load_dataset
 
 
@@ -24,16 +24,10 @@ def time_frame(frontend: NetworkFrontend, image: np.ndarray) -> tuple[dict, int]
     """Seconds of one frame through the front end's own ``detect`` (both stages, the
     refinement pass, voting, masks and duplicate removal), and of stage one alone
     (pre-processing, the box detector and its peaks); the number of detections."""
-    from posefuse.estimator.frontend.two_stage import decode_boxes
-
     t = {}
     if frontend.crop_session is not None:
         t0 = time.perf_counter()
-        decode_boxes(
-            frontend.infer(image),
-            input_scale_for(image.shape[:2], frontend.card),
-            frontend.two_stage,
-        )
+        frontend.boxes(image)
         t["stage_one"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     dets = frontend.detect(image)

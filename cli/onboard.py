@@ -53,6 +53,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         backgrounds=args.backgrounds,
         composite=args.composite,
         frozen_backbones=args.frozen_backbones,
+        scale_by_size=not args.one_scale,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -147,6 +148,13 @@ def register(subparsers) -> None:
         action="store_true",
         help="fine-tune the necks and heads only: both stages' backbones keep the initial "
         "checkpoint's weights (cheaper steps, less to learn)",
+    )
+    p.add_argument(
+        "--one-scale",
+        action="store_true",
+        help="find every part at stage one's one input scale (default: a part more than 1.4 "
+        "times the largest the shipped model was trained on, 88 mm, is found at half the "
+        "scale, where it looks that size)",
     )
     add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")

@@ -126,6 +126,10 @@ class TrainConfig:
     # both stages' backbones keep the weights they start with (``init``): a step trains the
     # necks and heads only, and no gradient flows back through the backbones
     frozen_backbones: bool = False
+    # per class (catalog order) the factor of stage one's input scale it is detected at: a part
+    # set's large parts at half the scale, where they look the size the network knows
+    # (sim.train_targets, SNIP's scale normalisation); empty: every class at input_scale
+    class_scale_factors: tuple[float, ...] = ()
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -210,6 +214,7 @@ _STREAM_FIELDS = (
     "backgrounds",
     "composite",
     "frozen_backbones",
+    "class_scale_factors",
 )
 
 
@@ -224,6 +229,7 @@ _OPTIONAL_STREAM_FIELDS = (
     "backgrounds",
     "composite",
     "frozen_backbones",
+    "class_scale_factors",
 )
 
 
@@ -279,7 +285,7 @@ class _Nets:
             g["lr"] = lr
         images, heat, weight, box, box_mask = det_batch
         crops, box_masks, label, vec = crop_batch_
-        heat, weight = torch.from_numpy(heat), torch.from_numpy(weight).unsqueeze(1)
+        heat, weight = torch.from_numpy(heat), torch.from_numpy(weight)
         box, box_mask = torch.from_numpy(box), torch.from_numpy(box_mask).unsqueeze(1)
         label, vec = torch.from_numpy(label).unsqueeze(1), torch.from_numpy(vec)
         x_det, x_crop = self._input(images, gen), self._input(crops, gen)
@@ -530,6 +536,7 @@ def _card(
         kind="two_stage",
         two_stage=two_stage,
         extra=extra,
+        class_scale_factors=tuple(config.class_scale_factors),
     )
 
 
@@ -693,6 +700,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             composite=float(stored.get("composite", 0.0)),
             input_scale=float(stored.get("input_scale", INPUT_SCALE)),
             frozen_backbones=bool(stored.get("frozen_backbones", False)),
+            class_scale_factors=tuple(float(f) for f in stored.get("class_scale_factors", ())),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -722,6 +730,15 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         )
     if config.input_scale is None:
         config = dataclasses.replace(config, input_scale=INPUT_SCALE)
+    if config.class_scale_factors:
+        factors = config.class_scale_factors
+        if config.agnostic or len(factors) != len(catalog):
+            raise ValueError(
+                f"class_scale_factors: {len(factors)} factors for "
+                f"{1 if config.agnostic else len(catalog)} classes (a generalist has one scale)"
+            )
+        if not all(0.0 < f <= 1.0 for f in factors):
+            raise ValueError(f"class_scale_factors: {list(factors)} must lie in (0, 1]")
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
     spec = RenderSpec(
@@ -772,6 +789,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         dihedral=config.dihedral,
         photometric=Photometric() if config.photometric else None,
         backgrounds=Backgrounds(p=config.backgrounds) if config.backgrounds > 0 else None,
+        class_scale_factors=config.class_scale_factors,
     )
     start = time.time()
     deadline = start + config.minutes * 60

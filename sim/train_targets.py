@@ -11,6 +11,11 @@ so a resumed run sees exactly the stream an uninterrupted one would have.
   cut out of the full-resolution view and resized to the crop size (the same warp as the
   front end's), with the instance's own pixels as the object label and unit vectors towards
   its projected model origin.
+- Detector batches with ``class_scale_factors`` (the scale normalisation of SNIP, Singh and
+  Davis 2018): each class is detected at the input scale where its parts look the size the
+  network knows (a part set's large parts at half the scale, say). A sample is drawn at one of
+  the factors, the view resized by it, and only that factor's classes are taught there: the
+  others' heatmaps are ignored in the sample, neither targets nor negatives.
 - Both, with ``photometric``: a real camera's exposure, white balance, tone curve, blur, noise
   and JPEG drawn per sample (``sim.photometric``).
 """
@@ -52,6 +57,9 @@ class BatchConfig:
     photometric: Photometric | None = None
     # what is no part replaced by clutter per sample (sim.backgrounds), None: the bin as rendered
     backgrounds: Backgrounds | None = None
+    # per class (output order) the factor of stage one's input scale it is detected at (see the
+    # module's docstring); empty: every class at the one scale
+    class_scale_factors: tuple[float, ...] = ()
 
 
 def det_targets(
@@ -60,6 +68,7 @@ def det_targets(
     origin_xy: tuple[int, int],
     grid_hw: tuple[int, int],
     n_classes: int,
+    taught: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """CenterNet targets of one detector crop.
 
@@ -68,19 +77,25 @@ def det_targets(
         scale: detector input pixels per image pixel.
         origin_xy: top-left of the crop in detector input pixels.
         grid_hw: (h, w) output cells of the crop.
+        taught: (C,) bool, the classes taught in this crop (None: all); the others' heatmaps
+            are weighted 0 everywhere and their parts give no box target.
     Returns:
-        heat: (C, h, w) float32 target in [0, 1]; weight: (h, w) float32 (0: ignored);
+        heat: (C, h, w) float32 target in [0, 1]; weight: (C, h, w) float32 (0: ignored);
         box: (4, h, w) float32 log width, log height (input pixels), offset x, y (cells);
         box_mask: (h, w) float32, 1 at the positive peaks.
     """
     h, w = grid_hw
     heat = np.zeros((n_classes, h, w), np.float32)
-    weight = np.ones((h, w), np.float32)
+    weight = np.ones((n_classes, h, w), np.float32)
     box = np.zeros((4, h, w), np.float32)
     box_mask = np.zeros((h, w), np.float32)
     ox, oy = origin_xy
+    if taught is not None:
+        weight[~np.asarray(taught, bool)] = 0.0
     for r in rows:
         cls = int(r[2])
+        if taught is not None and not taught[cls - 1]:
+            continue
         x0, y0, x1, y1 = r[5:9] * scale  # box edges in input pixels
         bw, bh = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
         # box center (pixel-center coordinates) -> output cell coordinates of the crop
@@ -90,7 +105,7 @@ def det_targets(
         if not (0 <= cx < w and 0 <= cy < h):
             continue
         if r[9] < MIN_POSITIVE_VISIB:
-            weight[max(cy - 1, 0) : cy + 2, max(cx - 1, 0) : cx + 2] = 0.0
+            weight[:, max(cy - 1, 0) : cy + 2, max(cx - 1, 0) : cx + 2] = 0.0
             continue
         sigma = max(0.6, min(bw, bh) / DET_STRIDE / 6.0)
         rad = int(np.ceil(3 * sigma))
@@ -108,14 +123,15 @@ def flip_detector_sample(image, heat, weight, box, box_mask, axis: int):
     """One detector crop and its targets flipped left-right (``axis`` 1) or upside down (0).
 
     Args:
-        image: (H, W, 3); heat: (C, h, w); weight: (h, w); box: (4, h, w) log width, log
+        image: (H, W, 3); heat: (C, h, w); weight: (C, h, w); box: (4, h, w) log width, log
             height, offset x, y; box_mask: (h, w).
     Returns:
         the five, flipped alike. A flip moves each cell's center by the stride's odd half,
         exactly as it moves the pixels, so the sub-cell offset along the axis flips sign.
     """
     image = np.flip(image, axis)
-    heat, weight, box_mask = np.flip(heat, axis + 1), np.flip(weight, axis), np.flip(box_mask, axis)
+    heat, weight = np.flip(heat, axis + 1), np.flip(weight, axis + 1)
+    box_mask = np.flip(box_mask, axis)
     box = np.flip(box, axis + 1).copy()
     box[3 - axis] = -box[3 - axis]
     return image, heat, weight, box, box_mask
@@ -134,21 +150,51 @@ def small_part_alpha(ts, view: int) -> np.ndarray:
     return cv2.copyMakeBorder(small, 0, Hs - sh, 0, Ws - sw, cv2.BORDER_REPLICATE)
 
 
+def _resized_view(view: np.ndarray, factor: float, min_hw: tuple[int, int]) -> np.ndarray:
+    """(H', W', ...) a stage-one view resized by ``factor`` (as the front end resizes a frame),
+    then padded at the bottom and right by repeating its edge to at least ``min_hw``, and to
+    multiples of 16."""
+    h, w = view.shape[:2]
+    if factor != 1.0:
+        size = (max(round(w * factor), 1), max(round(h * factor), 1))
+        view = cv2.resize(view, size, interpolation=cv2.INTER_AREA)
+    h, w = view.shape[:2]
+    ph, pw = max(min_hw[0] - h, -h % 16), max(min_hw[1] - w, -w % 16)
+    if ph or pw:
+        view = cv2.copyMakeBorder(view, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+    return view
+
+
 def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.random.Generator):
-    """(images (B, H, W, 3) uint8, heat (B, C, h, w), weight (B, h, w), box (B, 4, h, w),
+    """(images (B, H, W, 3) uint8, heat (B, C, h, w), weight (B, C, h, w), box (B, 4, h, w),
     box_mask (B, h, w))."""
-    H, W = ts.small_rgb.shape[1:3]
     ch, cw = config.det_crop
     scale = ts.meta["spec"]["small_scale"]
-    ny, nx = (H - ch) // 16 + 1, (W - cw) // 16 + 1
+    factors = np.asarray(config.class_scale_factors or [1.0] * n_classes, float)
+    if len(factors) != n_classes:
+        raise ValueError(f"class_scale_factors: {len(factors)} factors for {n_classes} classes")
+    levels = np.unique(factors)[::-1]  # the full scale first
     views = rng.integers(ts.n_views, size=config.det_batch)
     out = [], [], [], [], []
     for i in views:
         rows = view_rows[i]
+        taught = None
+        factor = 1.0
+        if len(levels) > 1:
+            factor = float(levels[rng.integers(len(levels))])
+            taught = factors == factor
+            source = _resized_view(np.asarray(ts.small_rgb[i]), factor, (ch, cw))
+            candidates = rows[taught[rows[:, 2].astype(int) - 1]] if len(rows) else rows
+        else:
+            source = ts.small_rgb[i]
+            candidates = rows
+        H, W = source.shape[:2]
+        ny, nx = (H - ch) // 16 + 1, (W - cw) // 16 + 1
+        s = scale * factor
         y0, x0 = int(rng.integers(ny)) * 16, int(rng.integers(nx)) * 16
-        if len(rows) and rng.random() < config.on_part:
-            r = rows[rng.integers(len(rows))]
-            px, py = (r[5] + r[7]) / 2 * scale, (r[6] + r[8]) / 2 * scale
+        if len(candidates) and rng.random() < config.on_part:
+            r = candidates[rng.integers(len(candidates))]
+            px, py = (r[5] + r[7]) / 2 * s, (r[6] + r[8]) / 2 * s
             lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
             lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
             lo_x, hi_x, lo_y, hi_y = (
@@ -161,12 +207,15 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
                 x0 = int(rng.integers(lo_x, hi_x + 1)) * 16
             if lo_y <= hi_y:
                 y0 = int(rng.integers(lo_y, hi_y + 1)) * 16
-        image = np.asarray(ts.small_rgb[i, y0 : y0 + ch, x0 : x0 + cw])
+        image = np.asarray(source[y0 : y0 + ch, x0 : x0 + cw])
         if config.backgrounds is not None:
-            alpha = small_part_alpha(ts, int(i))[y0 : y0 + ch, x0 : x0 + cw]
+            alpha = small_part_alpha(ts, int(i))
+            if taught is not None:
+                alpha = _resized_view(alpha, factor, (ch, cw))
+            alpha = alpha[y0 : y0 + ch, x0 : x0 + cw]
             image = paste_on_clutter(np.ascontiguousarray(image), alpha, rng, config.backgrounds)
         heat, weight, box, box_mask = det_targets(
-            rows, scale, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes
+            rows, s, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes, taught
         )
         sample = (image, heat, weight, box, box_mask)
         if rng.random() < 0.5:  # a mirrored bin is as plausible a bin

@@ -114,6 +114,14 @@ class ModelCard:
     # a generalist: one class, "a part" (``AGNOSTIC_CLASSES``), for any catalog; trained on the
     # shape family to find parts it has never seen, and the start of every onboarding
     agnostic: bool = False
+    # per class (output order) the factor of ``input_scale`` stage one finds it at: a part
+    # set's large parts at half the scale, where they look the size the network was trained
+    # on (sim.train_targets); stage one then runs once per distinct factor. Empty: one scale
+    class_scale_factors: tuple[float, ...] = ()
+
+    def scale_factor_of(self, class_index: int) -> float:
+        """The factor of ``input_scale`` stage one finds class ``class_index`` (0-based) at."""
+        return self.class_scale_factors[class_index] if self.class_scale_factors else 1.0
 
     def to_json(self) -> dict:
         return {
@@ -132,6 +140,11 @@ class ModelCard:
             "kind": self.kind,
             **({"two_stage": self.two_stage} if self.two_stage else {}),
             **({"agnostic": True} if self.agnostic else {}),
+            **(
+                {"class_scale_factors": list(self.class_scale_factors)}
+                if self.class_scale_factors
+                else {}
+            ),
             **(self.extra or {}),
         }
 
@@ -150,6 +163,7 @@ class ModelCard:
                 "kind",
                 "two_stage",
                 "agnostic",
+                "class_scale_factors",
             }
             kind = str(data.get("kind", "center_voting"))
             if kind not in ("center_voting", "two_stage"):
@@ -171,9 +185,21 @@ class ModelCard:
                 kind=kind,
                 two_stage=dict(two_stage) if kind == "two_stage" else None,
                 agnostic=bool(data.get("agnostic", False)),
+                class_scale_factors=_class_scale_factors(
+                    data.get("class_scale_factors", []), len(data["classes"])
+                ),
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise ModelError(path, f"model card is malformed ({exc!r})") from None
+
+
+def _class_scale_factors(values, n_classes: int) -> tuple[float, ...]:
+    factors = tuple(float(f) for f in values)
+    if factors and len(factors) != n_classes:
+        raise ValueError(f"class_scale_factors: {len(factors)} factors for {n_classes} classes")
+    if not all(0.0 < f <= 1.0 for f in factors):
+        raise ValueError(f"class_scale_factors: {list(factors)} must lie in (0, 1]")
+    return factors
 
 
 MIN_IMAGE_SIDE = 32  # pixels: smaller images hold no part a camera could be asked about
@@ -198,10 +224,11 @@ def input_scale_for(image_hw: tuple[int, int], card: ModelCard) -> float:
     return card.input_scale * card.image_size[0] / image_hw[1]
 
 
-def preprocess(image: np.ndarray, card: ModelCard) -> np.ndarray:
-    """(H, W, 3) uint8 RGB -> (1, 3, H', W') float32, H' and W' multiples of 16."""
+def preprocess(image: np.ndarray, card: ModelCard, factor: float = 1.0) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (1, 3, H', W') float32, H' and W' multiples of 16; the image
+    resized by ``factor`` x :func:`input_scale_for`."""
     h, w = image.shape[:2]
-    scale = input_scale_for((h, w), card)
+    scale = input_scale_for((h, w), card) * factor
     sw, sh = max(round(w * scale), 1), max(round(h * scale), 1)
     small = cv2.resize(image, (sw, sh), interpolation=cv2.INTER_AREA)
     ph, pw = -sh % 16, -sw % 16
@@ -317,11 +344,13 @@ class NetworkFrontend:
                 f"image: the model expects {w}x{h} images, got {image.shape[1]}x{image.shape[0]}",
             )
 
-    def infer(self, image: np.ndarray) -> np.ndarray:
+    def infer(self, image: np.ndarray, factor: float = 1.0) -> np.ndarray:
         """The first network's raw output: (C + 3, h, w) class logits then unit vectors for
-        a one-stage model; (C + 4, h, w) heatmaps, box size and offset for a two-stage one."""
+        a one-stage model; (C + 4, h, w) heatmaps, box size and offset for a two-stage one
+        (its input resized by ``factor`` x the card's scale: see ``class_scale_factors``)."""
         self.check_image(image)
-        return self.session.run(None, {self.input_name: preprocess(image, self.card)})[0][0]
+        x = preprocess(image, self.card, factor)
+        return self.session.run(None, {self.input_name: x})[0][0]
 
     def detect(self, image: np.ndarray, frame_seed: int | None = None) -> list[Detection]:
         """Detections in one image (RGB uint8), in a fixed order (class, then votes).
@@ -478,8 +507,32 @@ class NetworkFrontend:
 
     def boxes(self, image: np.ndarray) -> list[Box]:
         """Stage one of a two-stage model: the boxes and classes in one image, best first."""
-        config = self.two_stage
-        return decode_boxes(self.infer(image), input_scale_for(image.shape[:2], self.card), config)
+        return self.stage_one(image, [self.two_stage])[0]
+
+    def stage_one(self, image: np.ndarray, configs: list[TwoStageConfig]) -> list[list[Box]]:
+        """Stage one's boxes decoded under each of ``configs`` (their thresholds, say) from one
+        run of the detector per distinct ``class_scale_factors``: each class's boxes from the
+        run at its own scale. Each list best first, at most its config's ``max_boxes``."""
+        scale = input_scale_for(image.shape[:2], self.card)
+        n_classes = len(self.card.classes)
+        factors = [self.card.scale_factor_of(c) for c in range(n_classes)]
+        levels = sorted(set(factors), reverse=True)
+        if len(levels) == 1:
+            out = self.infer(image, levels[0])
+            return [decode_boxes(out, scale * levels[0], config) for config in configs]
+        found: list[list[Box]] = [[] for _ in configs]
+        for level in levels:
+            out = self.infer(image, level)
+            for boxes, config in zip(found, configs, strict=True):
+                boxes.extend(
+                    b
+                    for b in decode_boxes(out, scale * level, config)
+                    if factors[b.class_index] == level
+                )
+        return [
+            sorted(boxes, key=lambda b: -b.score)[: config.max_boxes]
+            for boxes, config in zip(found, configs, strict=True)
+        ]
 
     def stage_two_votes(self, image: np.ndarray, boxes: list[Box], rng) -> list[CropVote | None]:
         """Stage two of a two-stage model, one pass: each box's center vote (or None), without

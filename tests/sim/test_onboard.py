@@ -261,3 +261,27 @@ def test_a_validation_of_nothing_is_refused_before_any_work(tmp_path, capsys, fl
     code, text = _run(["onboard", str(path), "--out", str(out), flag, "0"], capsys)
     assert code == 2 and "--held-instances and --held-scenes must be at least 1" in text
     assert not out.exists()
+
+
+def test_parts_much_larger_than_the_shipped_models_are_found_at_half_the_scale():
+    """``class_scale_factors``: from the shipped model (parts of 57 to 88 mm), a part more than
+    1.4 times its largest is found by stage one at half the scale; from any other start, or
+    when no part is that large, every part at the one scale."""
+    import dataclasses
+
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
+    from posefuse.sim.onboard import LARGE_PART_RATIO, class_scale_factors
+
+    shipped = load_catalog(DEFAULT_CATALOG)
+    largest = max(m.diameter for m in shipped.values())
+    init = str(Path(DEFAULT_MODEL).with_suffix(".ckpt"))
+    assert class_scale_factors(shipped, init) == ()  # its own parts: one scale
+    grown = {
+        k: dataclasses.replace(
+            m, diameter=LARGE_PART_RATIO * largest * (1.01 if k in (2, 5) else 0.99)
+        )
+        for k, m in shipped.items()
+    }
+    assert class_scale_factors(grown, init) == (1.0, 0.5, 1.0, 1.0, 0.5)
+    assert class_scale_factors(grown, None) == ()

@@ -4,7 +4,7 @@ and bench.training_curve continues a fine-tune's curve from its base's."""
 
 import numpy as np
 
-from posefuse.bench.frontend_seen import score_boxes, score_view
+from posefuse.bench.frontend_seen import boxed_parts, found_parts, score_boxes, score_view
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.frontend.two_stage import Box
 
@@ -35,6 +35,10 @@ def test_one_to_one_same_class_within_15_px_recall_over_the_visible_parts():
     dets = [_det(7, 101, 100), _det(7, 300, 302), _det(7, 500, 503), _det(7, 716, 700)]
     found, parts, matched = score_view(dets, rows, class_of)
     assert (found, parts, matched) == (1, 4, 2)
+    # part by part (what --by-object counts per part type): the barely visible one is matched
+    # for precision but is not a found part
+    per_part, matched = found_parts(dets, rows, class_of)
+    assert per_part.tolist() == [True, False, False, False, False] and matched == 2
     # the second part is found by a second detection beside the first
     found, parts, matched = score_view(dets + [_det(7, 104, 101)], rows, class_of)
     assert (found, parts, matched) == (2, 4, 3)
@@ -59,6 +63,12 @@ def test_stage_one_alone_is_scored_by_the_visible_boxes_centres_one_to_one():
 
     boxes = [box(0, 105, 100), box(0, 300, 300), box(0, 500, 500)]
     assert score_boxes(boxes, rows, class_of, any_class=False) == 1
+    assert boxed_parts(boxes, rows, class_of, any_class=False).tolist() == [
+        True,
+        False,
+        False,
+        False,
+    ]
     # a generalist's boxes are "a part": the one on the part of the other class finds it
     assert score_boxes(boxes, rows, class_of, any_class=True) == 2
     assert score_boxes(boxes + [box(0, 104, 101)], rows, class_of, any_class=False) == 2

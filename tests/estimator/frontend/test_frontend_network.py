@@ -3,6 +3,7 @@ rendered bin's truth, bad input, a training smoke test."""
 
 import dataclasses
 import json
+import re
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -384,3 +385,54 @@ def test_stage_two_where_parts_are_expected_finds_them_and_not_where_none_is(
     assert n_parts >= 20 and n_empty >= 5
     assert found / n_parts >= 0.6, f"{found} of {n_parts} expected parts found within 5 px"
     assert ghosts <= 0.2 * n_empty, f"{ghosts} detections on {n_empty} crops of empty floor"
+
+
+def _model_copy(tmp_path, **card_fields) -> Path:
+    """The shipped model and its stage two copied into ``tmp_path``, its card changed."""
+    model = Path(DEFAULT_MODEL)
+    card = json.loads(model.with_suffix(".json").read_text())
+    tmp_path.mkdir(parents=True, exist_ok=True)
+    copy = tmp_path / model.name
+    shutil.copy(model, copy)
+    if card.get("two_stage", {}).get("crop_model"):
+        shutil.copy(model.parent / card["two_stage"]["crop_model"], tmp_path)
+    copy.with_suffix(".json").write_text(json.dumps({**card, **card_fields}))
+    return copy
+
+
+def test_each_class_is_found_at_its_own_scale(full_res_dataset, robi_catalog, tmp_path):
+    """With ``class_scale_factors`` stage one runs once per factor, and each class's boxes are
+    those of the run at its factor: the same boxes as a model whose one scale is that one."""
+    card = json.loads(Path(DEFAULT_MODEL).with_suffix(".json").read_text())
+    if card.get("kind") != "two_stage":
+        pytest.skip("scales per class are stage one's, of a two-stage model")
+    scale = card["input_scale"]
+    factors = [0.75, 1.0, 0.75, 1.0, 0.75]
+    mixed = NetworkFrontend(_model_copy(tmp_path / "a", class_scale_factors=factors), robi_catalog)
+    other = NetworkFrontend(_model_copy(tmp_path / "b", input_scale=scale * 0.75), robi_catalog)
+    full = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    assert mixed.card.class_scale_factors == tuple(factors)
+    assert load_card(mixed.model_path).to_json()["class_scale_factors"] == factors
+    dataset = load_dataset(full_res_dataset)
+    compared = Counter()
+    for view in list(dataset.views())[:3]:
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        boxes = mixed.boxes(image)
+        assert [b.score for b in boxes] == sorted((b.score for b in boxes), reverse=True)
+        for k in range(5):
+            own = other if factors[k] == 0.75 else full
+            want = [b for b in own.boxes(image) if b.class_index == k]
+            got = [b for b in boxes if b.class_index == k]
+            assert len(got) == len(want)
+            for g, w in zip(got, want, strict=True):
+                assert np.allclose(g.center, w.center) and np.allclose(g.size, w.size)
+            compared[factors[k]] += len(got)
+    assert compared[1.0] > 0 and compared[0.75] > 0  # boxes at both scales were compared
+
+
+@pytest.mark.parametrize(
+    "factors, message", [([1.0, 0.5], "2 factors for 5 classes"), ([1, 1, 1, 1, 0], "(0, 1]")]
+)
+def test_a_card_with_wrong_scale_factors_is_refused(robi_catalog, tmp_path, factors, message):
+    with pytest.raises(ModelError, match=re.escape(message)):
+        NetworkFrontend(_model_copy(tmp_path, class_scale_factors=factors), robi_catalog)

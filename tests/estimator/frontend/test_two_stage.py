@@ -3,6 +3,8 @@ front end's own code, gives back the truth (boxes, centers, masks), on a rendere
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -73,7 +75,8 @@ def test_detector_targets_decode_to_the_visible_boxes(view):
         size = positives[j, 7:9] - positives[j, 5:7]
         assert np.allclose(b.size, size, rtol=0.02, atol=1.0)
     # barely visible parts are ignored, not taught as background
-    assert (weight == 0).sum() >= 9 * (rows[:, 9] < 0.3).sum() * 0.5
+    assert weight.shape == heat.shape
+    assert (weight[0] == 0).sum() >= 9 * (rows[:, 9] < 0.3).sum() * 0.5
 
 
 def test_a_perfect_crop_output_votes_the_true_center_and_mask(view):
@@ -248,3 +251,72 @@ def test_a_turned_or_flipped_crop_still_points_at_its_center(view, seed):
     far = np.linalg.norm(center[None] - np.stack([xs, ys], 1), axis=1) > 1.0
     cosines = np.sum(vec2[:, ys, xs].T * to_center, axis=1)
     assert np.all(cosines[far] > 0.999)
+
+
+def test_a_crop_at_another_scale_teaches_its_own_classes_only(view):
+    """``class_scale_factors``' training: in a sample drawn at a factor, the classes found at
+    another scale are neither targets nor negatives (weight 0 on their heatmaps everywhere),
+    and the taught ones decode to their visible boxes at that factor's scale."""
+    from posefuse.sim.train_targets import _resized_view
+
+    _, _, small, rows = view
+    rows = rows.copy()
+    rows[:, 2] = 1 + np.arange(len(rows)) % 2  # two classes, alternating
+    factor, scale = 0.5, 0.5 * 0.5
+    image = _resized_view(small, factor, (256, 320))
+    assert image.shape[0] >= 256 and image.shape[1] >= 320
+    assert image.shape[0] % 16 == 0 and image.shape[1] % 16 == 0
+    import cv2
+
+    rh, rw = round(small.shape[0] * factor), round(small.shape[1] * factor)
+    resized = cv2.resize(small, (rw, rh), interpolation=cv2.INTER_AREA)
+    assert np.array_equal(image[:rh, :rw], resized)  # padded at the bottom and right only
+    h, w = image.shape[0] // 4, image.shape[1] // 4
+    taught = np.array([True, False, False, False, False])
+    heat, weight, box, box_mask = det_targets(rows, scale, (0, 0), (h, w), 5, taught)
+    assert not heat[1:].any() and not weight[1:].any()
+    assert weight[0].all() or (weight[0] == 0).sum() < weight[0].size  # cells still taught
+    boxes = decode_boxes(np.concatenate([heat, box], 0), scale, TwoStageConfig(min_score=0.99))
+    positives = rows[(rows[:, 9] >= 0.3) & (rows[:, 2] == 1)]
+    assert len(boxes) == len(positives) == box_mask.sum() > 3
+    truth = np.stack(
+        [(positives[:, 5] + positives[:, 7]) / 2, (positives[:, 6] + positives[:, 8]) / 2], 1
+    )
+    for b in boxes:
+        assert b.class_index == 0
+        assert np.linalg.norm(truth - (b.center + 0.5), axis=1).min() < 1.5  # a quarter cell
+    # every class taught: the targets of before, to the bit
+    everything = det_targets(rows, scale, (0, 0), (h, w), 5)
+    all_taught = det_targets(rows, scale, (0, 0), (h, w), 5, np.ones(5, bool))
+    for a, b in zip(everything, all_taught, strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_detector_batches_draw_each_sample_at_one_of_the_class_scales(view):
+    """Each sample of a batch with ``class_scale_factors`` teaches the classes of one factor
+    only, both factors are drawn, and factors all 1 give the one-scale batch to the bit."""
+    from types import SimpleNamespace
+
+    from posefuse.sim.train_targets import detector_batch
+
+    _, _, small, rows = view
+    rows = rows.copy()
+    rows[:, 2] = 1 + np.arange(len(rows)) % 2
+    ts = SimpleNamespace(small_rgb=small[None], n_views=1, meta={"spec": {"small_scale": 0.5}})
+    two = BatchConfig(det_batch=12, class_scale_factors=(1.0, 0.5, 1.0, 1.0, 1.0))
+    rng = np.random.default_rng(1)
+    images, heat, weight, _, _ = detector_batch(ts, [rows], 5, two, rng)
+    assert images.shape[1:3] == (256, 320) and weight.shape == heat.shape
+    taught = weight.reshape(12, 5, -1).any(-1)  # (B, C): the classes each sample teaches
+    half = taught[:, 1]
+    assert half.any() and not half.all()  # both scales drawn
+    assert not taught[half][:, [0, 2, 3, 4]].any() and taught[half][:, 1].all()
+    assert taught[~half][:, [0, 2, 3, 4]].all() and not taught[~half][:, 1].any()
+    one = BatchConfig(det_batch=12)
+    ones = dataclasses.replace(one, class_scale_factors=(1.0,) * 5)
+    a = detector_batch(ts, [rows], 5, one, np.random.default_rng(2))
+    b = detector_batch(ts, [rows], 5, ones, np.random.default_rng(2))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    with pytest.raises(ValueError, match="2 factors for 5 classes"):
+        wrong = dataclasses.replace(one, class_scale_factors=(1.0, 0.5))
+        detector_batch(ts, [rows], 5, wrong, np.random.default_rng(2))
