@@ -53,7 +53,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         backgrounds=args.backgrounds,
         composite=args.composite,
         frozen_backbones=args.frozen_backbones,
-        scale_by_size=not args.one_scale,
+        scale_by_size=args.scale_by_size,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -150,11 +150,11 @@ def register(subparsers) -> None:
         "checkpoint's weights (cheaper steps, less to learn)",
     )
     p.add_argument(
-        "--one-scale",
+        "--scale-by-size",
         action="store_true",
-        help="find every part at stage one's one input scale (default: a part more than 1.4 "
-        "times the largest the shipped model was trained on, 88 mm, is found at half the "
-        "scale, where it looks that size)",
+        help="find a part more than 1.4 times the largest the shipped model was trained on "
+        "(88 mm) at half stage one's input scale, where it looks that size (an experiment: it "
+        "found no more large parts in the evaluation; default: every part at the one scale)",
     )
     add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")

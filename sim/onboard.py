@@ -86,8 +86,9 @@ class OnboardConfig:
     # the backbones of both stages keep the initial checkpoint's weights (TrainConfig)
     frozen_backbones: bool = False
     # a part much larger than any the initial model was trained on is found by stage one at
-    # half the scale (:func:`class_scale_factors`); False: every part at the one scale
-    scale_by_size: bool = True
+    # half the scale (:func:`class_scale_factors`); off by default: on the five meshes of the
+    # evaluation it found no more of the large parts (docs/lab/2026-12-06-large-parts-half-scale.md)
+    scale_by_size: bool = False
 
 
 class Stages:
