@@ -54,6 +54,7 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         composite=args.composite,
         frozen_backbones=args.frozen_backbones,
         scale_by_size=args.scale_by_size,
+        class_balanced=args.class_balanced,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -155,6 +156,12 @@ def register(subparsers) -> None:
         help="find a part more than 1.4 times the largest the shipped model was trained on "
         "(88 mm) at half stage one's input scale, where it looks that size (an experiment: it "
         "found no more large parts in the evaluation; default: every part at the one scale)",
+    )
+    p.add_argument(
+        "--class-balanced",
+        action="store_true",
+        help="draw each part type's training crops in inverse proportion to its share of the "
+        "training renders' parts (an experiment; default: every part alike)",
     )
     add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")

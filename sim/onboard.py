@@ -89,6 +89,8 @@ class OnboardConfig:
     # half the scale (:func:`class_scale_factors`); off by default: on the five meshes of the
     # evaluation it found no more of the large parts (docs/lab/2026-12-06-large-parts-half-scale.md)
     scale_by_size: bool = False
+    # class-balanced sampling in the fine-tune (TrainConfig.class_balanced)
+    class_balanced: bool = False
 
 
 class Stages:
@@ -392,6 +394,7 @@ def _train(
                 frozen_backbones=config.frozen_backbones,
                 tune_min_score=True,
                 class_scale_factors=factors,
+                class_balanced=config.class_balanced,
             ),
         )
     # what the validation still needs once its scenes are rendered: both passes over its views
@@ -430,6 +433,7 @@ def _train(
         composite=config.composite,
         frozen_backbones=config.frozen_backbones,
         class_scale_factors=factors,
+        class_balanced=config.class_balanced,
     )
     return train(catalog_dir, model_path, train_config)
 

@@ -130,6 +130,9 @@ class TrainConfig:
     # set's large parts at half the scale, where they look the size the network knows
     # (sim.train_targets, SNIP's scale normalisation); empty: every class at input_scale
     class_scale_factors: tuple[float, ...] = ()
+    # class-balanced sampling: a class's parts are drawn (detector crops' centre parts,
+    # stage-two crops) in inverse proportion to its share of the training set's parts
+    class_balanced: bool = False
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -215,6 +218,7 @@ _STREAM_FIELDS = (
     "composite",
     "frozen_backbones",
     "class_scale_factors",
+    "class_balanced",
 )
 
 
@@ -230,6 +234,7 @@ _OPTIONAL_STREAM_FIELDS = (
     "composite",
     "frozen_backbones",
     "class_scale_factors",
+    "class_balanced",
 )
 
 
@@ -503,6 +508,14 @@ def _float_copy(model):
     return m
 
 
+def class_weights(classes: np.ndarray, n_classes: int) -> tuple[float, ...]:
+    """(C,) each class's sampling weight, the inverse of its share of ``classes`` (the class
+    column, 1..C, of the parts that may be drawn); a class with no part weighs 0."""
+    counts = np.bincount(np.asarray(classes, int), minlength=n_classes + 1)[1:]
+    share = counts / max(counts.sum(), 1)
+    return tuple(float(1.0 / s) if s > 0 else 0.0 for s in share)
+
+
 def _card(
     catalog,
     config: TrainConfig,
@@ -701,6 +714,7 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             input_scale=float(stored.get("input_scale", INPUT_SCALE)),
             frozen_backbones=bool(stored.get("frozen_backbones", False)),
             class_scale_factors=tuple(float(f) for f in stored.get("class_scale_factors", ())),
+            class_balanced=bool(stored.get("class_balanced", False)),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -790,6 +804,9 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         photometric=Photometric() if config.photometric else None,
         backgrounds=Backgrounds(p=config.backgrounds) if config.backgrounds > 0 else None,
         class_scale_factors=config.class_scale_factors,
+        class_weights=class_weights(ts.instances[candidates, 2], n_classes)
+        if config.class_balanced
+        else (),
     )
     start = time.time()
     deadline = start + config.minutes * 60

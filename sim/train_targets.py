@@ -60,6 +60,10 @@ class BatchConfig:
     # per class (output order) the factor of stage one's input scale it is detected at (see the
     # module's docstring); empty: every class at the one scale
     class_scale_factors: tuple[float, ...] = ()
+    # per class (output order) the weight of its parts when a detector crop's centre part and
+    # a stage-two crop's part are drawn (class-balanced sampling: the inverse of each class's
+    # share of the training set's parts); empty: every part alike
+    class_weights: tuple[float, ...] = ()
 
 
 def det_targets(
@@ -150,6 +154,17 @@ def small_part_alpha(ts, view: int) -> np.ndarray:
     return cv2.copyMakeBorder(small, 0, Hs - sh, 0, Ws - sw, cv2.BORDER_REPLICATE)
 
 
+def draw_parts(
+    classes: np.ndarray, weights: tuple[float, ...], rng: np.random.Generator, size=None
+):
+    """Indices into ``classes`` (the class column, 1..C, of the parts that may be drawn): each
+    part drawn with its class's weight, or uniformly when ``weights`` is empty."""
+    if not weights:
+        return rng.integers(len(classes), size=size)
+    p = np.asarray(weights, float)[np.asarray(classes).astype(int) - 1]
+    return rng.choice(len(classes), size=size, p=p / p.sum())
+
+
 def _resized_view(view: np.ndarray, factor: float, min_hw: tuple[int, int]) -> np.ndarray:
     """(H', W', ...) a stage-one view resized by ``factor`` (as the front end resizes a frame),
     then padded at the bottom and right by repeating its edge to at least ``min_hw``, and to
@@ -193,7 +208,7 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
         s = scale * factor
         y0, x0 = int(rng.integers(ny)) * 16, int(rng.integers(nx)) * 16
         if len(candidates) and rng.random() < config.on_part:
-            r = candidates[rng.integers(len(candidates))]
+            r = candidates[draw_parts(candidates[:, 2], config.class_weights, rng)]
             px, py = (r[5] + r[7]) / 2 * s, (r[6] + r[8]) / 2 * s
             lo_x, hi_x = int(np.ceil((px + 32 - cw) / 16)), int(np.floor((px - 32) / 16))
             lo_y, hi_y = int(np.ceil((py + 32 - ch) / 16)), int(np.floor((py - 32) / 16))
@@ -283,7 +298,8 @@ def crop_batch(ts, config: BatchConfig, rng: np.random.Generator, candidates: np
     Args:
         candidates: indices of the instance rows that may be drawn (visible enough).
     """
-    rows = ts.instances[candidates[rng.integers(len(candidates), size=config.crop_batch)]]
+    drawn = draw_parts(ts.instances[candidates, 2], config.class_weights, rng, config.crop_batch)
+    rows = ts.instances[candidates[drawn]]
     S = config.crop_size
     H, W = ts.full_rgb.shape[1:3]
     crops, masks, labels, vecs = [], [], [], []

@@ -320,3 +320,37 @@ def test_detector_batches_draw_each_sample_at_one_of_the_class_scales(view):
     with pytest.raises(ValueError, match="2 factors for 5 classes"):
         wrong = dataclasses.replace(one, class_scale_factors=(1.0, 0.5))
         detector_batch(ts, [rows], 5, wrong, np.random.default_rng(2))
+
+
+def test_class_balanced_sampling_draws_each_class_by_its_weight(view):
+    """``class_weights``: a part is drawn with its class's weight (a class weighted 0 never),
+    and the weights are the inverse of each class's share (``sim.train.class_weights``); both
+    stages' batches draw with them."""
+    from types import SimpleNamespace
+
+    from posefuse.sim.train import class_weights
+    from posefuse.sim.train_targets import detector_batch, draw_parts
+
+    assert class_weights(np.array([1, 1, 1, 2, 3, 3]), 4) == (2.0, 6.0, 3.0, 0.0)
+    classes = np.array([1, 2, 3] * 100)
+    drawn = classes[draw_parts(classes, (1.0, 3.0, 0.0), np.random.default_rng(0), 4000)]
+    assert not (drawn == 3).any()
+    assert abs((drawn == 2).mean() - 0.75) < 0.03
+    # weights by the inverse share draw a rare class as often as a common one
+    skewed = np.array([1] * 90 + [2] * 10)
+    drawn = skewed[draw_parts(skewed, class_weights(skewed, 2), np.random.default_rng(1), 4000)]
+    assert abs((drawn == 2).mean() - 0.5) < 0.03
+    # both batches run with weights, every crop holding its part
+    rgb, inst, small, rows = view
+    rows = rows.copy()
+    rows[:, 2] = 1 + np.arange(len(rows)) % 2
+    ts = SimpleNamespace(full_rgb=rgb[None], full_inst=inst[None], instances=rows)
+    candidates = np.flatnonzero(rows[:, 9] > 0.3)
+    only_second = BatchConfig(crop_batch=40, background_crops=0.0, class_weights=(0.0, 1.0))
+    _, _, label, _ = crop_batch(ts, only_second, np.random.default_rng(0), candidates)
+    assert label.reshape(40, -1).any(1).all()
+    spec = {"spec": {"small_scale": 0.5}}
+    ts_small = SimpleNamespace(small_rgb=small[None], n_views=1, meta=spec)
+    det = BatchConfig(det_batch=16, on_part=1.0, class_weights=(0.0, 1.0, 0.0, 0.0, 0.0))
+    _, heat, _, _, _ = detector_batch(ts_small, [rows], 5, det, np.random.default_rng(0))
+    assert (heat[:, 1].reshape(16, -1).max(1) == 1.0).all()
