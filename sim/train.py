@@ -44,6 +44,7 @@ from posefuse.estimator.frontend.network import (
     ModelCard,
     NetworkFrontend,
     catalog_hash,
+    class_scale_factors,
 )
 from posefuse.evaluation.center_calibration import DEFAULT_EDGES, factors_by_score, nees_table
 from posefuse.evaluation.dataset import load_dataset
@@ -744,15 +745,8 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         )
     if config.input_scale is None:
         config = dataclasses.replace(config, input_scale=INPUT_SCALE)
-    if config.class_scale_factors:
-        factors = config.class_scale_factors
-        if config.agnostic or len(factors) != len(catalog):
-            raise ValueError(
-                f"class_scale_factors: {len(factors)} factors for "
-                f"{1 if config.agnostic else len(catalog)} classes (a generalist has one scale)"
-            )
-        if not all(0.0 < f <= 1.0 for f in factors):
-            raise ValueError(f"class_scale_factors: {list(factors)} must lie in (0, 1]")
+    # a generalist has one class, so one scale
+    class_scale_factors(config.class_scale_factors, 1 if config.agnostic else len(catalog))
     data_dir = Path(config.data_dir) if config.data_dir else _default_data_dir()
     t_render = time.time()
     spec = RenderSpec(

@@ -185,7 +185,7 @@ class ModelCard:
                 kind=kind,
                 two_stage=dict(two_stage) if kind == "two_stage" else None,
                 agnostic=bool(data.get("agnostic", False)),
-                class_scale_factors=_class_scale_factors(
+                class_scale_factors=class_scale_factors(
                     data.get("class_scale_factors", []), len(data["classes"])
                 ),
             )
@@ -193,7 +193,9 @@ class ModelCard:
             raise ModelError(path, f"model card is malformed ({exc!r})") from None
 
 
-def _class_scale_factors(values, n_classes: int) -> tuple[float, ...]:
+def class_scale_factors(values, n_classes: int) -> tuple[float, ...]:
+    """``values`` as a card's ``class_scale_factors`` for ``n_classes`` classes (empty, or one
+    factor in (0, 1] per class). Raises ValueError naming the field otherwise."""
     factors = tuple(float(f) for f in values)
     if factors and len(factors) != n_classes:
         raise ValueError(f"class_scale_factors: {len(factors)} factors for {n_classes} classes")
