@@ -193,12 +193,14 @@ def _numeric_fields(cls) -> dict[str, object]:
 
 def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     """``KEY=VALUE`` strings of ``--verification`` as numeric VerificationConfig fields,
-    ``edges.KEY`` for the EdgeConfig it holds, or ``refinement.KEY`` for the RefineConfig (an
+    ``edges.KEY`` for the EdgeConfig it holds, ``turns.KEY`` for its TurnJudgeConfig (with
+    ``turns.enabled``), or ``refinement.KEY`` for the RefineConfig (an
     optional one, such as ``settled_margin``, also takes ``none``); a PosefuseError names a
     malformed pair or an unknown field."""
     # lazy: the verification modules load scipy, trimesh and cv2 (~0.5 s)
     from posefuse.estimator.verification.edge_maps import EdgeConfig
     from posefuse.estimator.verification.refinement import RefineConfig
+    from posefuse.estimator.verification.turns import TurnJudgeConfig
     from posefuse.estimator.verification.verify import VerificationConfig
 
     optional = {
@@ -209,6 +211,8 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     numeric = _numeric_fields(VerificationConfig)
     numeric.update({f"edges.{k}": t for k, t in _numeric_fields(EdgeConfig).items()})
     numeric.update({f"refinement.{k}": t for k, t in _numeric_fields(RefineConfig).items()})
+    numeric.update({f"turns.{k}": t for k, t in _numeric_fields(TurnJudgeConfig).items()})
+    numeric["turns.enabled"] = _switch  # the judge has no ablation flag of its own
     out: dict[str, float | None] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")
@@ -248,8 +252,13 @@ def tracker_config(
                 )
             except ValueError as err:
                 raise PosefuseError(f"--verification refinement.*: {err}") from None
-        own = {k: v for k, v in verification.items() if not k.startswith(("edges.", "refinement."))}
+        own = {
+            k: v
+            for k, v in verification.items()
+            if not k.startswith(("edges.", "refinement.", "turns."))
+        }
         edges = {k[len("edges.") :]: v for k, v in verification.items() if k.startswith("edges.")}
+        turns = {k[len("turns.") :]: v for k, v in verification.items() if k.startswith("turns.")}
         try:
             verification_config = dataclasses.replace(config.verification, **own)
         except ValueError as err:
@@ -260,6 +269,12 @@ def tracker_config(
             except ValueError as err:
                 raise PosefuseError(f"--verification edges.*: {err}") from None
             verification_config = dataclasses.replace(verification_config, edges=edge_config)
+        if turns:
+            try:
+                judge = dataclasses.replace(verification_config.turns, **turns)
+            except ValueError as err:
+                raise PosefuseError(f"--verification turns.*: {err}") from None
+            verification_config = dataclasses.replace(verification_config, turns=judge)
         config = dataclasses.replace(config, verification=verification_config)
     if no_verify:
         config = dataclasses.replace(
@@ -520,7 +535,8 @@ def register(subparsers) -> None:
         action="append",
         metavar="KEY=VALUE",
         help="replace a verification setting, e.g. mask_weight=2.0, settled_margin=none to "
-        "verify at every new view, edges.KEY=V or refinement.KEY=V (repeatable; for tuning)",
+        "verify at every new view, edges.KEY=V, turns.KEY=V (turns.enabled=0: the near-symmetric "
+        "turns not judged) or refinement.KEY=V (repeatable; for tuning)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

@@ -28,7 +28,8 @@ from posefuse.estimator.rotation.templates import (
 from posefuse.estimator.tracker.config import TrackerConfig
 from posefuse.estimator.tracker.tracks import Track
 from posefuse.estimator.translation.gaussian import MIN_DEPTH
-from posefuse.estimator.verification.edge_maps import EdgeRoi, edge_maps, edge_roi
+from posefuse.estimator.verification import turns as turn_judge
+from posefuse.estimator.verification.edge_maps import EdgeRoi, EdgeView, edge_maps, edge_roi
 from posefuse.estimator.verification.model_edges import ModelEdges, model_edges
 from posefuse.estimator.verification.refinement import (
     EdgeScoring,
@@ -78,6 +79,9 @@ class PoseStage:
         self.unasked: dict[int, np.ndarray] = {}
         # per class, the refinement's settings with its turn bounded by the class's basin
         self.refine_configs: dict[int, RefineConfig] = {}
+        # per class, the edge samples that tell its unasked turns apart (None: no such turns,
+        # or the judge is off; estimator.verification.turns)
+        self.distinct: dict[int, ModelEdges | None] = {}
 
     # ---- per class, made once --------------------------------------------------------------
 
@@ -132,6 +136,13 @@ class PoseStage:
                 sym,
                 axes,
                 self.variants[obj_id],
+            )
+            self.distinct[obj_id] = (
+                turn_judge.distinct_edges(
+                    model.mesh, model.diameter, self.unasked[obj_id], cfg.edges, cfg.turns
+                )
+                if cfg.turns.enabled and len(self.unasked[obj_id])
+                else None
             )
             reach = refinement_reach_deg(self.variants[obj_id], sym, axes)
             rcfg = self.config.refinement
@@ -229,9 +240,11 @@ class PoseStage:
         stale = self.stale(track)
         if added and not stale and self.settled(track):
             track.settled_stamps = track.settled_stamps | set(added)
+            self.judge_turns(track)  # the new views may show what tells the turns apart
             return
         if (stale and track.edge_views) or added:
             self.verify(track, new_views=bool(added))
+            self.judge_turns(track)
 
     def check_due(self, track: Track) -> None:
         """The check a deferred track waits for (TrackerConfig.deferred_verification), with
@@ -250,7 +263,7 @@ class PoseStage:
         except Exception:
             # the last verdict no longer speaks for the views: the mixture's pose is published
             # (unverified) until a new view asks again
-            track.verdict, track.refined = None, None
+            track.verdict, track.refined, track.turns = None, None, None
             raise
 
     def settled(self, track: Track) -> bool:
@@ -363,6 +376,37 @@ class PoseStage:
             warm,
         )
         self._challenge(track, edges, rcfg)
+
+    def judge_turns(self, track: Track) -> None:
+        """Which of the part's unasked near-symmetric turns (a gear's teeth) the kept views
+        show, at the verified pose (the refined one when accepted), by the edges that tell them
+        apart (:func:`estimator.verification.turns.judge_turns`); None without a verdict, for
+        a part without such turns, or where no view shows enough of those edges."""
+        track.turns = None
+        verdict = track.verdict
+        if verdict is None:
+            return
+        self.model_edges(track.obj_id)
+        distinct = self.distinct.get(track.obj_id)
+        if distinct is None:
+            return
+        refined = track.refined
+        if refined is not None and refined.accepted:
+            R_world_obj, t_world_obj = refined.R_world_obj, refined.t_world_obj
+        else:
+            R_world_obj = verdict.R_world_obj[verdict.best]
+            t_world_obj = track.estimate.t_world_obj
+        vcfg = self.config.verification
+        track.turns = turn_judge.judge_turns(
+            distinct,
+            [v for v in track.edge_views if isinstance(v, EdgeView)],
+            R_world_obj,
+            t_world_obj,
+            self.unasked[track.obj_id],
+            vcfg.edges,
+            vcfg.turns,
+            vcfg.compiled,
+        )
 
     def _challenge(self, track: Track, edges: ModelEdges, rcfg: RefineConfig) -> None:
         """A winner whose refined pose still costs more than ``challenge_cost`` in the kept

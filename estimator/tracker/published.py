@@ -96,8 +96,10 @@ def published_estimate(
     """What the track publishes at ``stamp_ns`` (see the module docstring); ``verification``
     gives the odds from which a turn is published as an alternative (default: the default
     config's). ``unasked`` (K, 3, 3) are object-frame turns of the part the verification does
-    not ask the views about (``PoseStage.unasked``: a gear's teeth): a verified pose publishes
-    each as an alternative with odds 1, since nothing rules it out."""
+    not ask the views about (``PoseStage.unasked``: a gear's teeth): where the track's turn
+    judgement (``Track.turns``, :mod:`estimator.verification.turns`) says which of them the
+    views show, the pose is turned to it and the others are published with their odds; without
+    one, each is published with odds 1, since nothing rules it out."""
     verification = verification or VerificationConfig()
     T = np.eye(4)
     T[:3, 3] = track.estimate.t_world_obj
@@ -132,7 +134,15 @@ def published_estimate(
                 T[:3, 3] = refined.t_world_obj
                 cov = refined.cov.copy()
             turns, odds = alternative_turns(verdict, verification.temperature)
-            if unasked is not None and len(unasked):
+            judged = track.turns
+            if judged is not None:
+                # the turn the views show leads; the verification's turns are of the pose
+                # before it, so they are taken to the judged pose
+                T[:3, :3] = R_components[lead] = T[:3, :3] @ judged.turn
+                turns = np.einsum("ji,ajk->aik", judged.turn, turns)
+                turns = np.concatenate([turns, judged.alternatives])
+                odds = np.concatenate([odds, judged.odds])
+            elif unasked is not None and len(unasked):
                 turns = np.concatenate([turns, unasked])
                 odds = np.concatenate([odds, np.ones(len(unasked))])
             ambiguity = float(odds.max()) if len(odds) else 0.0

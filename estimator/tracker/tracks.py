@@ -35,6 +35,7 @@ from posefuse.estimator.translation.merging import MergeCandidate, merge_pairs
 from posefuse.estimator.translation.splitting import outlier_views
 from posefuse.estimator.verification.edge_maps import EdgeRoi, EdgeView
 from posefuse.estimator.verification.refinement import Refinement
+from posefuse.estimator.verification.turns import TurnJudgement
 from posefuse.estimator.verification.verify import ScoreCache, Verdict
 
 TENTATIVE = "tentative"
@@ -97,6 +98,9 @@ class Track:
     verdict: Verdict | None = None  # of the last verification, for the mixture as it was then
     scores: ScoreCache = field(default_factory=ScoreCache)  # per-view costs, reused
     refined: Refinement | None = None
+    # which of the part's unasked near-symmetric turns the kept views show, judged after the
+    # refinement (estimator.verification.turns); None: not judged, every turn open
+    turns: TurnJudgement | None = None
     # the translation prior (3,) the refinement took, and the stamps of the views the refined
     # pose has been checked against (the settled check)
     refined_t_prior: np.ndarray | None = None
@@ -328,7 +332,8 @@ class TrackBook:
         keep.pending = sorted(keep.pending + gone.pending, key=lambda p: p.stamp_ns)
         views = sorted(keep.edge_views + gone.edge_views, key=lambda v: v.stamp_ns)
         keep.edge_views = views[-self.config.verification.max_views :]
-        keep.verdict, keep.refined = None, None  # the mixture changes: verified again next view
+        # the mixture changes: verified again next view
+        keep.verdict, keep.refined, keep.turns = None, None, None
         waiting = [s for s in (keep.check_since, gone.check_since) if s is not None]
         keep.check_since = min(waiting) if waiting else None
         keep.check_added = keep.check_added | gone.check_added

@@ -34,6 +34,7 @@ from posefuse.estimator.verification.model_edges import (
     project_shown,
     silhouette_misses,
 )
+from posefuse.estimator.verification.turns import TurnJudgeConfig
 
 __all__ = [
     "ScoreCache",
@@ -104,6 +105,10 @@ class VerificationConfig:
     # the chamfer sums by the compiled kernel (estimator.verification.kernels), or by the numpy
     # code it replaced (the reference, equal to rounding)
     compiled: bool = True
+    # the turns of a part's near-symmetric groups that it does not ask about (a gear's teeth)
+    # are judged after the refinement by the edges that tell them apart
+    # (estimator.verification.turns); off, they are all published as open
+    turns: TurnJudgeConfig = TurnJudgeConfig()
 
     def __post_init__(self) -> None:
         if (

@@ -223,9 +223,17 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
         tracker_config(verification={"refinement.accept_frac_max": None}).refinement.accept_frac_max
         is None
     )
+    # the turn judge's settings, and its switch
+    judge = verification_settings(["turns.effective_share=1", "turns.enabled=0"])
+    assert judge == {"turns.effective_share": 1.0, "turns.enabled": False}
+    judged = tracker_config(verification={**judge, "max_views": 4}).verification
+    assert judged.turns.effective_share == 1.0 and not judged.turns.enabled
+    assert judged.max_views == 4 and judged.enabled
+    assert judged.turns.distinct_frac == VerificationConfig().turns.distinct_frac
     for bad, says in (
         ({"refinement.sample_stride": 0}, "refinement"),
         ({"sample_stride": 0}, "verification config"),
+        ({"turns.effective_share": 0.0}, "turns"),
     ):
         with pytest.raises(PosefuseError, match=says):
             tracker_config(verification=bad)

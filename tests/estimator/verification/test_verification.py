@@ -1588,8 +1588,10 @@ def test_a_verified_part_with_unasked_near_symmetric_turns_publishes_them(
     small_dataset_root, default_banks
 ):
     """The catalog's near-symmetric group that the verification does not ask about (a gear's
-    teeth) is published beside every verified pose of the part, with odds 1, and the rotation
-    covariance covers it; other parts are left as they were."""
+    teeth): with the turn judge off, every turn is published beside every verified pose of the
+    part with odds 1, and the rotation covariance covers it. With the judge on, a made-up group
+    that the part's edges plainly break is ruled out by the views: the verified pose is kept and
+    none of its turns is published. Other parts are left as they were either way."""
     import dataclasses
 
     from scipy.spatial.transform import Rotation
@@ -1609,24 +1611,41 @@ def test_a_verified_part_with_unasked_near_symmetric_turns_publishes_them(
         dataclasses.replace(m, near_symmetries=(axis,)) if k == target else m
         for k, m in dataset.catalog.items()
     ]
-    estimator = _run_scene(
-        dataset, dataset.scene_ids[0], TrackerConfig(), default_banks, Catalog(models)
-    )
     by_id = {e.object_id: e for e in plain.estimates()}
-    seen = 0
-    for e in estimator.estimates():
-        if not estimator.tracks[e.object_id].verdict:
-            continue
-        if e.class_id != target:
-            assert [a.odds for a in e.alternatives] == [
-                a.odds for a in by_id[e.object_id].alternatives
-            ]
-            continue
-        seen += 1
-        unasked = [a for a in e.alternatives if a.odds == 1.0]
-        assert len(unasked) >= 3 and e.ambiguous and e.ambiguity == 1.0
-        R = e.T_world_obj[:3, :3]
-        for a in unasked:
-            phi = Rotation.from_matrix(Rotation.from_quat(a.q).as_matrix() @ R.T).as_rotvec()
-            assert phi @ np.linalg.solve(e.cov[3:, 3:], phi) <= 4.0 + 1e-6
-    assert seen > 0
+    judge_off = TrackerConfig(
+        verification=dataclasses.replace(
+            CONFIG, turns=dataclasses.replace(CONFIG.turns, enabled=False)
+        )
+    )
+    for config in (judge_off, TrackerConfig()):
+        estimator = _run_scene(
+            dataset, dataset.scene_ids[0], config, default_banks, Catalog(models)
+        )
+        seen = 0
+        for e in estimator.estimates():
+            track = estimator.tracks[e.object_id]
+            if not track.verdict:
+                continue
+            if e.class_id != target:
+                assert [a.odds for a in e.alternatives] == [
+                    a.odds for a in by_id[e.object_id].alternatives
+                ]
+                continue
+            seen += 1
+            unasked = [a for a in e.alternatives if a.odds == 1.0]
+            if config is judge_off:
+                assert track.turns is None
+                assert len(unasked) >= 3 and e.ambiguous and e.ambiguity == 1.0
+                R = e.T_world_obj[:3, :3]
+                for a in unasked:
+                    phi = Rotation.from_matrix(
+                        Rotation.from_quat(a.q).as_matrix() @ R.T
+                    ).as_rotvec()
+                    assert phi @ np.linalg.solve(e.cov[3:, 3:], phi) <= 4.0 + 1e-6
+            else:
+                assert track.turns is not None
+                assert np.allclose(track.turns.turn, np.eye(3))
+                assert np.all(track.turns.odds < CONFIG.ambiguous_odds)
+                assert not unasked
+                np.testing.assert_allclose(e.T_world_obj, by_id[e.object_id].T_world_obj)
+        assert seen > 0

@@ -1,0 +1,153 @@
+"""The turn judge (estimator.verification.turns): a square plate with a small block near one
+corner is 4-fold symmetric but for the block. The samples that tell its quarter turns apart are
+the block's; rendered views above the plate pick the turn they show from a wrong start; views
+from below, where the plate hides the block, judge nothing."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+
+from posefuse.estimator.core.camera import Camera
+from posefuse.estimator.core.geometry import invert, make_transform, rotation_angle, so3_exp
+from posefuse.estimator.nbv import look_at
+from posefuse.estimator.rotation.render import DEFAULT_LIGHTING, MATTE, METAL, Renderer
+from posefuse.estimator.verification.edge_maps import EdgeConfig, edge_view
+from posefuse.estimator.verification.turns import TurnJudgeConfig, distinct_edges, judge_turns
+
+CAM = Camera(np.array([[700.0, 0, 319.5], [0, 700.0, 239.5], [0, 0, 1]]), 640, 480)
+EDGES = EdgeConfig()
+JUDGE = TurnJudgeConfig()
+BLOCK_XY = np.array([0.025, 0.025])  # the block's centre on the plate's top face, metres
+BLOCK_HALF = 0.005
+QUARTERS = np.array([so3_exp(k * np.pi / 2 * np.array([0.0, 0.0, 1.0])) for k in (1, 2, 3)])
+
+
+def _plate(with_block: bool = True) -> trimesh.Trimesh:
+    """An 80 x 80 x 8 mm plate centred on the origin, and a 10 x 10 x 6 mm block on its top."""
+    plate = trimesh.creation.box((0.08, 0.08, 0.008))
+    if not with_block:
+        return plate
+    block = trimesh.creation.box((2 * BLOCK_HALF, 2 * BLOCK_HALF, 0.006))
+    block.apply_translation([BLOCK_XY[0], BLOCK_XY[1], 0.004 + 0.003])
+    return trimesh.util.concatenate([plate, block])
+
+
+def _diameter(mesh: trimesh.Trimesh) -> float:
+    v = mesh.vertices
+    return float(np.max(np.linalg.norm(v[:, None] - v[None], axis=2)))
+
+
+def _views(mesh, T_world_obj, eyes, material=METAL):
+    """EdgeViews of the part alone (no floor), seen from each eye towards its origin."""
+    renderer = Renderer([mesh], [T_world_obj], ids=[0], materials=[material])
+    center = T_world_obj[:3, 3]
+    out = []
+    for k, eye in enumerate(eyes):
+        T_world_cam = look_at(np.asarray(eye, float), center, np.array([0.0, 1.0, 0.0]))
+        res = renderer.render(CAM, T_world_cam, DEFAULT_LIGHTING, shadows=False)
+        T_cam_world = invert(T_world_cam)
+        t_cam = (T_cam_world @ T_world_obj)[:3, 3]
+        out.append(
+            edge_view(
+                res.image,
+                CAM.K,
+                T_cam_world,
+                t_cam,
+                _diameter(mesh),
+                EDGES,
+                res.instance == 0,
+                stamp_ns=k,
+            )
+        )
+    return out
+
+
+T_WORLD_OBJ = make_transform(so3_exp(np.array([0.15, -0.1, 0.4])), np.array([0.0, 0.0, 0.0]))
+ABOVE = [(0.25, 0.1, 0.35), (-0.2, 0.2, 0.35), (0.05, -0.3, 0.3)]
+BELOW = [(0.2, 0.1, -0.35), (-0.2, 0.15, -0.35), (0.05, -0.25, -0.3)]
+
+
+def test_the_samples_that_tell_the_quarter_turns_apart_are_the_blocks():
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    assert distinct is not None and len(distinct.points) >= 20
+    off_block = np.abs(distinct.points[:, :2] - BLOCK_XY).max(axis=1)
+    assert np.all(off_block <= BLOCK_HALF + 1e-6)
+    assert np.all(distinct.points[:, 2] >= 0.004 - 1e-6)  # on the plate's top face or above
+    # capped evenly, and none at all where the turns are symmetries of the part
+    capped = distinct_edges(mesh, d, QUARTERS, EDGES, replace(JUDGE, max_distinct=10))
+    assert len(capped.points) == 10
+    assert distinct_edges(_plate(with_block=False), d, QUARTERS, EDGES, JUDGE) is None
+    assert distinct_edges(mesh, d, np.zeros((0, 3, 3)), EDGES, JUDGE) is None
+
+
+@pytest.mark.parametrize("wrong", [0, 1, 2])
+def test_views_that_show_the_block_pick_the_turn_they_show(wrong):
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    views = _views(mesh, T_WORLD_OBJ, ABOVE)
+    R_true, t = T_WORLD_OBJ[:3, :3], T_WORLD_OBJ[:3, 3]
+    # from the truth: kept, every turn ruled out
+    kept = judge_turns(distinct, views, R_true, t, QUARTERS, EDGES, JUDGE)
+    assert kept is not None and np.allclose(kept.turn, np.eye(3))
+    assert kept.samples >= JUDGE.min_samples
+    assert np.all(kept.odds < 0.05)
+    # from a wrong quarter turn: the judge turns it back to the truth
+    start = R_true @ QUARTERS[wrong].T
+    judged = judge_turns(distinct, views, start, t, QUARTERS, EDGES, JUDGE)
+    assert judged is not None
+    assert rotation_angle(start @ judged.turn @ R_true.T) < 1e-6
+    assert np.all(judged.odds < 0.05)
+    # the alternatives are the other turns, of the winner: the start among them
+    alternatives = np.einsum("ij,ajk->aik", start @ judged.turn, judged.alternatives)
+    assert min(rotation_angle(a @ start.T) for a in alternatives) < 1e-6
+    # one view shows fewer samples than min_samples (60) and judges nothing; with a lower
+    # bar it judges alike, on weaker evidence than the three views'
+    assert judge_turns(distinct, views[:1], R_true, t, QUARTERS, EDGES, JUDGE) is None
+    lower = replace(JUDGE, min_samples=20)
+    alone = judge_turns(distinct, views[:1], R_true, t, QUARTERS, EDGES, lower)
+    assert alone is not None and np.allclose(alone.turn, np.eye(3))
+    assert alone.samples < kept.samples and alone.odds.max() > kept.odds.max()
+
+
+def test_views_from_where_the_block_is_hidden_judge_nothing():
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    views = _views(mesh, T_WORLD_OBJ, BELOW)
+    R_true, t = T_WORLD_OBJ[:3, :3], T_WORLD_OBJ[:3, 3]
+    assert judge_turns(distinct, views, R_true, t, QUARTERS, EDGES, JUDGE) is None
+    assert judge_turns(distinct, [], R_true, t, QUARTERS, EDGES, JUDGE) is None
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("distinct_frac", 0.0),
+        ("effective_share", 0.0),
+        ("effective_share", 1.5),
+        ("min_samples", 0),
+    ],
+)
+def test_a_malformed_judge_setting_is_refused(field, value):
+    with pytest.raises(ValueError, match="turn judge"):
+        TurnJudgeConfig(**{field: value})
+
+
+def test_a_matte_part_is_judged_alike():
+    """The judge reads the image's edges, whatever the material shows of them."""
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    views = _views(mesh, T_WORLD_OBJ, ABOVE, MATTE)
+    center = T_WORLD_OBJ[:3, 3]
+    start = T_WORLD_OBJ[:3, :3] @ QUARTERS[1].T
+    judged = judge_turns(distinct, views, start, center, QUARTERS, EDGES, JUDGE)
+    assert judged is not None
+    assert rotation_angle(start @ judged.turn @ T_WORLD_OBJ[:3, :3].T) < 1e-6
