@@ -39,6 +39,7 @@ STAGES = (
     "settled checks",
     "verification",
     "refinement",
+    "turn judge",
     "challenge",
     "estimator (rest)",
     "encode",
@@ -88,6 +89,7 @@ def instrumented(timer: StageTimer):
     import posefuse.estimator.tracker.estimator as walk
     import posefuse.estimator.tracker.pose_stage as tracker
     import posefuse.estimator.tracker.tracks as tracks
+    import posefuse.estimator.verification.turns as turns
     from posefuse.estimator.rotation.mixture import RotationMixture
 
     patches = [
@@ -108,6 +110,7 @@ def instrumented(timer: StageTimer):
         (tracker, "agrees", "settled checks"),
         (tracker, "verify", "verification"),
         (tracker, "refine_pose", "refinement"),
+        (turns, "judge_turns", "turn judge"),
         # the challenge's scorings and, inside it, its challenger's refinement (timed here,
         # counted among the refinements below)
         (tracker.PoseStage, "_challenge", "challenge"),
@@ -135,14 +138,22 @@ def instrumented(timer: StageTimer):
 # the step's work, counted: views kept (edge maps), settled tracks checked against a new view,
 # tracks verified, refinements; a verification beyond the views kept is one the "mixture
 # changed" rule asked for, and a settled check that agreed is a verification saved
-COUNTED = ("edge maps", "settled checks", "verification", "refinement")
+COUNTED = ("edge maps", "settled checks", "verification", "refinement", "turn judge")
 # what the daemon's deferred check runs, off the frame's path (the RoIs stay on it)
 STEP = (*COUNTED, "challenge")
 
 
-def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, config=None) -> dict:
+def profile(
+    dataset_dir: str,
+    scene_ids: list[int],
+    repeat: int,
+    threads: int,
+    config=None,
+    model: str | None = None,
+) -> dict:
     """Per-stage mean ms per frame and whole-frame median/p95 over the scenes' views, with the
-    estimator's ``config`` (a TrackerConfig; default: its defaults)."""
+    estimator's ``config`` (a TrackerConfig; default: its defaults) and the front end ``model``
+    (an ONNX file; default: the shipped one)."""
     import zenoh
 
     from posefuse.estimator.frontend.network import NetworkFrontend, preprocess
@@ -152,7 +163,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
     from posefuse.service.resources import DEFAULT_MODEL
 
     ds = load_dataset(dataset_dir)
-    network = NetworkFrontend(DEFAULT_MODEL, ds.catalog, threads=threads, spin=False)
+    network = NetworkFrontend(model or DEFAULT_MODEL, ds.catalog, threads=threads, spin=False)
     decode = decoders()["image"]
     estimator = MultiViewEstimator(ds.catalog, config)
     estimator.warm_up()  # as posefuse serve does before its first frame
@@ -196,7 +207,7 @@ def profile(dataset_dir: str, scene_ids: list[int], repeat: int, threads: int, c
                         )
                     inner = sum(
                         timer.seconds[s]
-                        for s in STAGES[3:14]  # association .. refinement
+                        for s in STAGES[3:15]  # association .. turn judge
                     )
                     timer.seconds["estimator (rest)"] += time.perf_counter() - t_est - inner
                     with timer.stage("encode"):
@@ -238,6 +249,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=3, help="runs of each scene")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads")
     parser.add_argument(
+        "--model",
+        help="the front end's ONNX file (default: the shipped one), e.g. a part set's "
+        "DIR/model/parts.onnx for a dataset of its parts",
+    )
+    parser.add_argument(
         "--verification",
         action="append",
         metavar="KEY=VALUE",
@@ -262,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
             verification=replace(config.verification, compiled=False),
             refinement=replace(config.refinement, compiled=False),
         )
-    r = profile(args.dataset, args.scene, args.repeat, args.threads, config)
+    r = profile(args.dataset, args.scene, args.repeat, args.threads, config, args.model)
     print(
         f"{args.dataset} scenes {args.scene}: {r['frames']} frames, "
         f"{r['objects_per_view']:.1f} objects per view"
@@ -274,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     step = sum(r["stages_ms"][s] for s in STEP)
     print(
         f"{'the step (deferred)':<20} {step:>9.1f}  (edge maps, settled checks, verification, "
-        "refinement, challenge: the daemon runs them between frames)"
+        "refinement, turn judge, challenge: the daemon runs them between frames)"
     )
     print(f"{'frame p50':<20} {r['total_p50_ms']:>9.1f}")
     print(f"{'frame p95':<20} {r['total_p95_ms']:>9.1f}")
@@ -286,7 +302,8 @@ def main(argv: list[str] | None = None) -> int:
         f"over {r['frames']} frames: {n['edge maps']} views kept (edge maps), "
         f"{n['settled checks']} settled checks, {n['verification']} verifications, "
         f"{refinements} refinements ({r['refinements_accepted']} accepted; "
-        f"{refinements - n['refinement']} of them challengers')"
+        f"{refinements - n['refinement']} of them challengers'), "
+        f"{n['turn judge']} turn judgements"
     )
     print(f"self-occlusion rays cast by the viewpoint tables: {r['rays_cast']}")
     refused = r["refinements_refused"]
