@@ -5,22 +5,22 @@ from below, where the plate hides the block, judge nothing."""
 
 from __future__ import annotations
 
+from collections import namedtuple
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import trimesh
+from test_verification import _views as rendered_views
 
-from posefuse.estimator.core.camera import Camera
-from posefuse.estimator.core.geometry import invert, make_transform, rotation_angle, so3_exp
-from posefuse.estimator.nbv import look_at
-from posefuse.estimator.rotation.render import DEFAULT_LIGHTING, MATTE, METAL, Renderer
-from posefuse.estimator.verification.edge_maps import EdgeConfig, edge_view
+from posefuse.estimator.core.geometry import make_transform, rotation_angle, so3_exp
+from posefuse.estimator.rotation.render import MATTE, METAL
+from posefuse.estimator.verification.edge_maps import EdgeConfig
 from posefuse.estimator.verification.turns import TurnJudgeConfig, distinct_edges, judge_turns
 
-CAM = Camera(np.array([[700.0, 0, 319.5], [0, 700.0, 239.5], [0, 0, 1]]), 640, 480)
 EDGES = EdgeConfig()
 JUDGE = TurnJudgeConfig()
+Part = namedtuple("Part", "mesh diameter")
 BLOCK_XY = np.array([0.025, 0.025])  # the block's centre on the plate's top face, metres
 BLOCK_HALF = 0.005
 QUARTERS = np.array([so3_exp(k * np.pi / 2 * np.array([0.0, 0.0, 1.0])) for k in (1, 2, 3)])
@@ -42,28 +42,8 @@ def _diameter(mesh: trimesh.Trimesh) -> float:
 
 
 def _views(mesh, T_world_obj, eyes, material=METAL):
-    """EdgeViews of the part alone (no floor), seen from each eye towards its origin."""
-    renderer = Renderer([mesh], [T_world_obj], ids=[0], materials=[material])
-    center = T_world_obj[:3, 3]
-    out = []
-    for k, eye in enumerate(eyes):
-        T_world_cam = look_at(np.asarray(eye, float), center, np.array([0.0, 1.0, 0.0]))
-        res = renderer.render(CAM, T_world_cam, DEFAULT_LIGHTING, shadows=False)
-        T_cam_world = invert(T_world_cam)
-        t_cam = (T_cam_world @ T_world_obj)[:3, 3]
-        out.append(
-            edge_view(
-                res.image,
-                CAM.K,
-                T_cam_world,
-                t_cam,
-                _diameter(mesh),
-                EDGES,
-                res.instance == 0,
-                stamp_ns=k,
-            )
-        )
-    return out
+    """EdgeViews of the part alone (no floor: the views from below see its underside)."""
+    return rendered_views(Part(mesh, _diameter(mesh)), T_world_obj, eyes, material, floor=False)
 
 
 T_WORLD_OBJ = make_transform(so3_exp(np.array([0.15, -0.1, 0.4])), np.array([0.0, 0.0, 0.0]))

@@ -43,14 +43,18 @@ def _model(catalog, name):
     return next(m for m in catalog.values() if m.name == name)
 
 
-def _views(model, T_world_obj, eyes, material):
-    """EdgeViews of the part on a grey floor, seen from each eye towards its origin."""
-    floor = trimesh.creation.box((0.6, 0.6, 0.01))
-    lowest = (model.mesh.vertices @ T_world_obj[:3, :3].T + T_world_obj[:3, 3])[:, 2].min()
-    T_floor = make_transform(np.eye(3), np.array([0.0, 0.0, lowest - 0.0051]))
-    renderer = Renderer(
-        [floor, model.mesh], [T_floor, T_world_obj], ids=[1, 0], materials=[MATTE, material]
-    )
+def _views(model, T_world_obj, eyes, material, floor=True):
+    """EdgeViews of the part on a grey floor (or alone), seen from each eye towards its origin;
+    ``model`` needs a ``mesh`` and a ``diameter``."""
+    if floor:
+        box = trimesh.creation.box((0.6, 0.6, 0.01))
+        lowest = (model.mesh.vertices @ T_world_obj[:3, :3].T + T_world_obj[:3, 3])[:, 2].min()
+        T_floor = make_transform(np.eye(3), np.array([0.0, 0.0, lowest - 0.0051]))
+        renderer = Renderer(
+            [box, model.mesh], [T_floor, T_world_obj], ids=[1, 0], materials=[MATTE, material]
+        )
+    else:
+        renderer = Renderer([model.mesh], [T_world_obj], ids=[0], materials=[material])
     center = T_world_obj[:3, 3]
     out = []
     for eye in eyes:
