@@ -221,3 +221,34 @@ def test_a_snapshot_taken_while_tracks_wait_restores_their_views_and_checks_the_
     running.check_all()
     restored.check_all()
     _same(running.estimates(), restored.estimates())
+
+
+def test_a_part_whose_near_symmetric_turns_are_judged_is_deferred_bit_for_bit(
+    dataset, default_banks
+):
+    """The turn judge runs in the check, inline or deferred: with a made-up near-symmetric group
+    on every part, the deferred estimates are those of the update, bit for bit, and judged."""
+    import dataclasses
+
+    from posefuse.estimator.core.objects import Catalog
+    from posefuse.estimator.core.symmetry import SymmetryAxis
+
+    axis = SymmetryAxis((1.0, 0.0, 0.0), 7, 0.02)
+    catalog = Catalog(
+        [dataclasses.replace(m, near_symmetries=(axis,)) for m in dataset.catalog.values()]
+    )
+    inline = MultiViewEstimator(catalog, TrackerConfig(), banks=default_banks)
+    deferred = MultiViewEstimator(
+        catalog, TrackerConfig(deferred_verification=True), banks=default_banks
+    )
+    for frame, detections in _frames(dataset, dataset.scene_ids[0]):
+        inline.update(frame, detections)
+        deferred.update(frame, detections)
+        deferred.check_all()
+        _same(inline.estimates(), deferred.estimates())
+    judged = [t for t in deferred.tracks.values() if t.turns is not None]
+    assert judged
+    for track in judged:
+        other = inline.tracks[track.object_id].turns
+        assert other is not None and np.array_equal(other.turn, track.turns.turn)
+        assert np.array_equal(other.odds, track.turns.odds)
