@@ -2,7 +2,10 @@
 numbers beside them, for a person to confirm or override (``posefuse onboard --symmetry``).
 
 Claimed axes are green (continuous: a double line), alternatives not claimed orange; a flagged
-part (a claim near the tolerance, or an alternative) says so in red.
+part (a claim near the tolerance, or an alternative) says so in red. Where the part keeps a
+near-symmetry (an alternative not claimed), the edges that tell its turns apart, which the
+daemon judges them by (:mod:`estimator.verification.turns`), are drawn as orange dots where they
+show: a camera must see them for the turn to be known.
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ def render_contact_sheet(model: ObjectModel, report: SymmetryReport) -> np.ndarr
     camera, distance = _camera(model.diameter)
     center, _ = _surface_moments(model.mesh)
     renderer = Renderer([model.mesh])
+    distinct = distinguishing_edges(model)
     panels = []
     for view in VIEWS:
         v = np.asarray(view) / np.linalg.norm(view)
@@ -61,6 +65,8 @@ def render_contact_sheet(model: ObjectModel, report: SymmetryReport) -> np.ndarr
                     colour,
                     at_start,
                 )
+        if distinct is not None:
+            _draw_samples(image, camera, T_cam_obj, distinct)
         panels.append(image)
     text = np.zeros((PANEL, TEXT_WIDTH, 3), np.uint8)
     lines = [
@@ -80,6 +86,13 @@ def render_contact_sheet(model: ObjectModel, report: SymmetryReport) -> np.ndarr
     lines.append(
         (f"tolerance {100 * report.tol_frac:.1f}% of d (95th pct surface distance)", WHITE)
     )
+    if model.near_symmetries:
+        if distinct is None:
+            lines.append(("no edge tells its near-symmetric turns apart: all published", ORANGE))
+        else:
+            lines.append(
+                (f"{len(distinct.points)} edge samples tell its turns apart (orange dots)", ORANGE)
+            )
     if report.flags:
         lines.append(("FLAGGED - please decide:", RED))
         for flag in report.flags:
@@ -97,6 +110,51 @@ def write_contact_sheet(model: ObjectModel, report: SymmetryReport, out: str | P
     out.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out), render_contact_sheet(model, report))
     return out
+
+
+def distinguishing_edges(model: ObjectModel, config=None):
+    """The edge samples the daemon judges the turns of ``model``'s near-symmetries by
+    (:func:`estimator.verification.turns.distinct_edges` of the turns the verification does not
+    ask about, as ``PoseStage.model_edges`` makes them), or None: no near-symmetry, or no edge
+    that tells its turns apart. ``config``: a VerificationConfig (default: the default one)."""
+    from posefuse.estimator.verification.turns import distinct_edges
+    from posefuse.estimator.verification.verify import (
+        VerificationConfig,
+        near_symmetries,
+        near_symmetry_turns,
+    )
+
+    if not model.near_symmetries:
+        return None
+    config = config or VerificationConfig()
+    sym = np.concatenate([np.eye(3)[None], model.symmetries_discrete[:, :3, :3]])
+    axes = np.array([c.axis for c in model.symmetries_continuous]).reshape(-1, 3)
+    variants = near_symmetries(
+        model.points, model.diameter, sym, axes, config.near_frac, config.max_variants
+    )
+    turns = near_symmetry_turns(
+        np.array([g.axis for g in model.near_symmetries]).reshape(-1, 3),
+        np.array([g.order for g in model.near_symmetries], int),
+        sym,
+        axes,
+        variants,
+    )
+    if not len(turns):
+        return None
+    return distinct_edges(model.mesh, model.diameter, turns, config.edges, config.turns)
+
+
+def _draw_samples(image, camera, T_cam_obj, edges) -> None:
+    """The samples of ``edges`` that show from the panel's camera (on its occluding contour or
+    a visible crease, not hidden by the part), as orange dots."""
+    from posefuse.estimator.verification.model_edges import pose_edges
+
+    R, t = T_cam_obj[None, :3, :3], T_cam_obj[None, :3, 3]
+    _, _, active, _ = pose_edges(edges, R, t, False)
+    pts = edges.points[active[0]] @ T_cam_obj[:3, :3].T + T_cam_obj[:3, 3]
+    for u, v in camera.project(pts):
+        if np.isfinite(u) and np.isfinite(v):
+            cv2.circle(image, (int(round(u)), int(round(v))), 2, ORANGE, -1, cv2.LINE_AA)
 
 
 def _draw_axis(image, camera, T_cam_obj, center, axis, order, diameter, colour, at_start):
