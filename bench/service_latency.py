@@ -50,13 +50,15 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def start_daemon(cell: str) -> tuple[subprocess.Popen, int, str]:
-    """``posefuse serve`` of ``cell`` on free loopback ports, once ready: (process, Zenoh
-    port, HTTP base URL)."""
+def start_daemon(cell: str, parts: str | None = None) -> tuple[subprocess.Popen, int, str]:
+    """``posefuse serve`` of ``cell`` on free loopback ports (with the part set ``parts`` of
+    ``posefuse onboard``, or the shipped catalog), once ready: (process, Zenoh port, HTTP base
+    URL)."""
     zport, hport = _free_port(), _free_port()
     daemon = subprocess.Popen(
         [sys.executable, "-m", "posefuse.cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
-        + ["--http-port", str(hport), "--cell", cell],
+        + ["--http-port", str(hport), "--cell", cell]
+        + (["--parts", parts] if parts else []),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},

@@ -1,6 +1,7 @@
 """The service's speed targets, measured end to end: latency and throughput of ``posefuse serve``.
 
 python -m posefuse.bench.service_targets --few DIR:SCENE --many DIR:SCENE [--seconds 20]
+    [--parts DIR]
 
 Starts ``posefuse serve`` as its own process on loopback and publishes, from this process, the
 views of a scene (1280x720 JPEG, camera info and poses, as cameras do) over and over with
@@ -114,10 +115,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=20.0, help="per throughput run")
     parser.add_argument("--latency-frames", type=int, default=40)
     parser.add_argument("--json", help="write the results here too")
+    parser.add_argument(
+        "--parts",
+        help="serve this part set of `posefuse onboard` (default: the shipped catalog); the "
+        "scenes must be renders of its parts",
+    )
     args = parser.parse_args(argv)
 
     scenes = {"few": _scene_messages(args.few), "many": _scene_messages(args.many)}
-    daemon, zport, base = start_daemon(CELL)
+    daemon, zport, base = start_daemon(CELL, args.parts)
     results: dict = {}
     try:
         conf = peer_config(zport)

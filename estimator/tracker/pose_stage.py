@@ -239,8 +239,10 @@ class PoseStage:
             return
         stale = self.stale(track)
         if added and not stale and self.settled(track):
+            # the turn judgement stands too: judged again at every settled view it changed
+            # nothing on the tuning sets and cost a daemon with twelve gears in view a third of
+            # its verified updates (docs/lab/2026-12-06-gear-turns-judged.md)
             track.settled_stamps = track.settled_stamps | set(added)
-            self.judge_turns(track)  # the new views may show what tells the turns apart
             return
         if (stale and track.edge_views) or added:
             self.verify(track, new_views=bool(added))
