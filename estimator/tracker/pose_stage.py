@@ -239,10 +239,10 @@ class PoseStage:
             return
         stale = self.stale(track)
         if added and not stale and self.settled(track):
-            # the turn judgement stands too: judged again at every settled view it changed
-            # nothing on the tuning sets and cost a daemon with twelve gears in view a third of
-            # its verified updates (docs/lab/2026-12-06-gear-turns-judged.md)
             track.settled_stamps = track.settled_stamps | set(added)
+            # the new views may show what tells the turns apart; the pose is the same, so
+            # only they are scored (TurnScoreCache)
+            self.judge_turns(track)
             return
         if (stale and track.edge_views) or added:
             self.verify(track, new_views=bool(added))
@@ -399,6 +399,8 @@ class PoseStage:
             R_world_obj = verdict.R_world_obj[verdict.best]
             t_world_obj = track.estimate.t_world_obj
         vcfg = self.config.verification
+        if getattr(track, "turn_scores", None) is None:  # a track restored from before it
+            track.turn_scores = turn_judge.TurnScoreCache()
         track.turns = turn_judge.judge_turns(
             distinct,
             [v for v in track.edge_views if isinstance(v, EdgeView)],
@@ -408,6 +410,7 @@ class PoseStage:
             vcfg.edges,
             vcfg.turns,
             vcfg.compiled,
+            track.turn_scores,
         )
 
     def _challenge(self, track: Track, edges: ModelEdges, rcfg: RefineConfig) -> None:

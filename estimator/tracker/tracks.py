@@ -35,7 +35,7 @@ from posefuse.estimator.translation.merging import MergeCandidate, merge_pairs
 from posefuse.estimator.translation.splitting import outlier_views
 from posefuse.estimator.verification.edge_maps import EdgeRoi, EdgeView
 from posefuse.estimator.verification.refinement import Refinement
-from posefuse.estimator.verification.turns import TurnJudgement
+from posefuse.estimator.verification.turns import TurnJudgement, TurnScoreCache
 from posefuse.estimator.verification.verify import ScoreCache, Verdict
 
 TENTATIVE = "tentative"
@@ -101,6 +101,7 @@ class Track:
     # which of the part's unasked near-symmetric turns the kept views show, judged after the
     # refinement (estimator.verification.turns); None: not judged, every turn open
     turns: TurnJudgement | None = None
+    turn_scores: TurnScoreCache | None = None  # the judge's per-view sums, reused
     # the translation prior (3,) the refinement took, and the stamps of the views the refined
     # pose has been checked against (the settled check)
     refined_t_prior: np.ndarray | None = None

@@ -24,7 +24,7 @@ as ``R_world_obj @ T``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -39,7 +39,13 @@ from posefuse.estimator.verification.model_edges import (
     project_shown,
 )
 
-__all__ = ["TurnJudgeConfig", "TurnJudgement", "distinct_edges", "judge_turns"]
+__all__ = [
+    "TurnJudgeConfig",
+    "TurnJudgement",
+    "TurnScoreCache",
+    "distinct_edges",
+    "judge_turns",
+]
 
 
 @dataclass(frozen=True)
@@ -145,6 +151,18 @@ def distinct_edges(
     )
 
 
+@dataclass(eq=False)
+class TurnScoreCache:
+    """Each kept view's sums for the pose and its turns, (3, H): shown samples, their distances
+    and their squares, per candidate. They hold while the judged pose is the same (a settled
+    track keeps its refined pose), so a new view costs its own scoring only; a new pose starts
+    the cache again. R_world_obj (3, 3) and t_world_obj (3,): the pose they were scored at."""
+
+    R_world_obj: np.ndarray | None = None
+    t_world_obj: np.ndarray | None = None
+    entries: dict = field(default_factory=dict)  # _key(view) -> (3, H)
+
+
 def judge_turns(
     edges: ModelEdges,
     views: list[EdgeView],
@@ -154,39 +172,46 @@ def judge_turns(
     edge_config: EdgeConfig,
     config: TurnJudgeConfig,
     compiled: bool = True,
+    cache: TurnScoreCache | None = None,
 ) -> TurnJudgement | None:
     """Judge the pose and its ``turns`` in ``views`` (see the module docstring).
 
     Args:
         edges: :func:`distinct_edges` of the part for these turns; views: the track's kept
         views' maps (made with ``edge_config``); R_world_obj: (3, 3); t_world_obj: (3,);
-        turns: (K, 3, 3) object-frame turns, the identity not among them.
+        turns: (K, 3, 3) object-frame turns, the identity not among them; cache: the views'
+        sums of an earlier call, reused where the pose is the same (updated in place; the
+        judgement is the same with or without it).
     Returns:
         None when no view shows ``min_samples`` distinguishing samples for the best of them.
     """
     turns = np.asarray(turns, float).reshape(-1, 3, 3)
-    V = len(views)
-    if V == 0 or not len(turns):
+    if not views or not len(turns):
         return None
     candidates = np.concatenate([np.eye(3)[None], turns])  # (H, 3, 3), the pose first
     H = len(candidates)
-    R_h = np.einsum("ij,hjk->hik", np.asarray(R_world_obj, float), candidates)
-    R_cw = np.array([v.T_cam_world[:3, :3] for v in views])  # (V, 3, 3)
-    t_cw = np.array([v.T_cam_world[:3, 3] for v in views])  # (V, 3)
-    R_cam = np.einsum("vij,hjk->hvik", R_cw, R_h).reshape(-1, 3, 3)  # pose n = h * V + v
-    t_cam = np.tile(R_cw @ np.asarray(t_world_obj, float) + t_cw, (H, 1))
-    K = np.tile(np.array([v.K_roi for v in views]), (H, 1, 1))
-    _, _, active, _ = pose_edges(edges, R_cam, t_cam, compiled)
-    pose, _, uv, angle = project_shown(edges, active, R_cam, t_cam, K)
-    view = pose % V
-    bins = edge_config.bins
-    b = np.floor(angle / (np.pi / bins) + 0.5).astype(np.intp) % bins
-    dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
-    d, _ = sample_maps(dcdt, view * bins + b, uv, edge_config.truncate_px, False)
-    hyp = pose // V
-    n = np.bincount(hyp, minlength=H).astype(float)  # (H,)
-    total = np.bincount(hyp, weights=d, minlength=H)
-    squares = np.bincount(hyp, weights=d * d, minlength=H)
+    R_world_obj = np.asarray(R_world_obj, float)
+    t_world_obj = np.asarray(t_world_obj, float)
+    cache = cache if cache is not None else TurnScoreCache()
+    if not (
+        cache.R_world_obj is not None
+        and np.array_equal(cache.R_world_obj, R_world_obj)
+        and np.array_equal(cache.t_world_obj, t_world_obj)
+    ):
+        cache.R_world_obj, cache.t_world_obj = R_world_obj.copy(), t_world_obj.copy()
+        cache.entries = {}
+    todo = [v for v in views if _key(v) not in cache.entries]
+    if todo:
+        for v, sums in zip(
+            todo,
+            _view_sums(edges, todo, R_world_obj, t_world_obj, candidates, edge_config, compiled),
+            strict=True,
+        ):
+            cache.entries[_key(v)] = sums
+    kept = {_key(v) for v in views}
+    for stamp in [s for s in cache.entries if s not in kept]:
+        del cache.entries[stamp]
+    n, total, squares = np.stack([cache.entries[_key(v)] for v in views]).sum(axis=0)
     mean = np.where(n > 0, total / np.maximum(n, 1), np.inf)
     best = int(np.argmin(mean))
     if n[best] < config.min_samples:
@@ -209,3 +234,43 @@ def judge_turns(
         odds=odds,
         samples=int(n[best]),
     )
+
+
+def _key(view: EdgeView) -> tuple[int, bytes]:
+    """A kept view, by its stamp and where its RoI lies (a view of the same stamp made again
+    around another translation is another view)."""
+    return view.stamp_ns, np.asarray(view.K_roi, float).tobytes()
+
+
+def _view_sums(
+    edges: ModelEdges,
+    views: list[EdgeView],
+    R_world_obj: np.ndarray,
+    t_world_obj: np.ndarray,
+    candidates: np.ndarray,
+    edge_config: EdgeConfig,
+    compiled: bool,
+) -> np.ndarray:
+    """(V, 3, H) per view and candidate (H, 3, 3) turn of the pose: the distinguishing
+    samples shown, the sum of their truncated directional chamfer distances, and of their
+    squares, all in one batch."""
+    V, H = len(views), len(candidates)
+    R_h = np.einsum("ij,hjk->hik", R_world_obj, candidates)
+    R_cw = np.array([v.T_cam_world[:3, :3] for v in views])  # (V, 3, 3)
+    t_cw = np.array([v.T_cam_world[:3, 3] for v in views])  # (V, 3)
+    R_cam = np.einsum("vij,hjk->hvik", R_cw, R_h).reshape(-1, 3, 3)  # pose n = h * V + v
+    t_cam = np.tile(R_cw @ t_world_obj + t_cw, (H, 1))
+    K = np.tile(np.array([v.K_roi for v in views]), (H, 1, 1))
+    _, _, active, _ = pose_edges(edges, R_cam, t_cam, compiled)
+    pose, _, uv, angle = project_shown(edges, active, R_cam, t_cam, K)
+    view = pose % V
+    bins = edge_config.bins
+    b = np.floor(angle / (np.pi / bins) + 0.5).astype(np.intp) % bins
+    dcdt = np.concatenate([v.dcdt for v in views])  # (V * bins, L, L)
+    d, _ = sample_maps(dcdt, view * bins + b, uv, edge_config.truncate_px, False)
+    slot = view * H + pose // V  # (view, candidate)
+    out = np.empty((3, V * H))
+    out[0] = np.bincount(slot, minlength=V * H)
+    out[1] = np.bincount(slot, weights=d, minlength=V * H)
+    out[2] = np.bincount(slot, weights=d * d, minlength=V * H)
+    return out.reshape(3, V, H).transpose(1, 0, 2)

@@ -16,7 +16,12 @@ from test_verification import _views as rendered_views
 from posefuse.estimator.core.geometry import make_transform, rotation_angle, so3_exp
 from posefuse.estimator.rotation.render import MATTE, METAL
 from posefuse.estimator.verification.edge_maps import EdgeConfig
-from posefuse.estimator.verification.turns import TurnJudgeConfig, distinct_edges, judge_turns
+from posefuse.estimator.verification.turns import (
+    TurnJudgeConfig,
+    TurnScoreCache,
+    distinct_edges,
+    judge_turns,
+)
 
 EDGES = EdgeConfig()
 JUDGE = TurnJudgeConfig()
@@ -131,3 +136,30 @@ def test_a_matte_part_is_judged_alike():
     judged = judge_turns(distinct, views, start, center, QUARTERS, EDGES, JUDGE)
     assert judged is not None
     assert rotation_angle(start @ judged.turn @ T_WORLD_OBJ[:3, :3].T) < 1e-6
+
+
+def test_the_views_sums_kept_for_the_same_pose_give_the_same_judgement():
+    """A settled track keeps its pose as views come: the sums of the views already judged are
+    reused, and the judgement is the one of scoring every view again, bit for bit; a new pose
+    starts the cache again, and a view no longer kept leaves it."""
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    eyes = [*ABOVE, (0.3, -0.1, 0.3)]
+    views = [replace(v, stamp_ns=k + 1) for k, v in enumerate(_views(mesh, T_WORLD_OBJ, eyes))]
+    start = T_WORLD_OBJ[:3, :3] @ QUARTERS[0].T
+    t = T_WORLD_OBJ[:3, 3]
+    cache = TurnScoreCache()
+    judge_turns(distinct, views[:2], start, t, QUARTERS, EDGES, JUDGE, cache=cache)
+    assert len(cache.entries) == 2
+    kept = judge_turns(distinct, views, start, t, QUARTERS, EDGES, JUDGE, cache=cache)
+    fresh = judge_turns(distinct, views, start, t, QUARTERS, EDGES, JUDGE)
+    assert len(cache.entries) == 4
+    assert np.array_equal(kept.turn, fresh.turn) and np.array_equal(kept.odds, fresh.odds)
+    assert kept.samples == fresh.samples
+    # another pose: scored again from nothing
+    other = so3_exp(np.array([0.0, 0.02, 0.0])) @ start
+    moved = judge_turns(distinct, views[1:], other, t, QUARTERS, EDGES, JUDGE, cache=cache)
+    again = judge_turns(distinct, views[1:], other, t, QUARTERS, EDGES, JUDGE)
+    assert len(cache.entries) == 3 and np.array_equal(cache.R_world_obj, other)
+    assert np.array_equal(moved.odds, again.odds) and moved.samples == again.samples
