@@ -29,7 +29,6 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from posefuse.estimator.core.geometry import rotation_angle
 from posefuse.estimator.verification.edge_maps import EdgeConfig, EdgeView, sample_maps
 from posefuse.estimator.verification.model_edges import (
     ModelEdges,
@@ -59,11 +58,6 @@ class TurnJudgeConfig:
     max_distinct: int = 4000  # samples judged at most (every n-th of those selected)
     # shown samples, summed over the views, below which nothing is judged
     min_samples: int = 60
-    # a view's sums scored at a pose are reused while the pose to judge stays within these of
-    # it (as the verification's ScoreCache does): the refinement moves a settled pose by less
-    # at each verification, and the turns are whole teeth apart
-    reuse_deg: float = 1.0
-    reuse_frac: float = 0.01  # of the diameter
     # the share of the samples counted as independent in a mean's standard error. Chosen on
     # the tuning sets (the five meshes of ../shared/objects rendered with seeds 6161, mixed,
     # and 6363 and 6364, piles of gears; oracle): the poses are the same at any share, and
@@ -79,8 +73,6 @@ class TurnJudgeConfig:
             or self.max_distinct < 1
             or self.min_samples < 1
             or not 0.0 < self.effective_share <= 1.0
-            or self.reuse_deg < 0
-            or self.reuse_frac < 0
         ):
             raise ValueError(f"invalid turn judge config: {self}")
 
@@ -162,10 +154,9 @@ def distinct_edges(
 @dataclass(eq=False)
 class TurnScoreCache:
     """Each kept view's sums for the pose and its turns, (3, H): shown samples, their distances
-    and their squares, per candidate. They hold while the pose to judge stays within
-    ``TurnJudgeConfig.reuse_deg`` and ``reuse_frac`` of the one they were scored at, so a new
-    view costs its own scoring only; a pose farther away starts the cache again. R_world_obj
-    (3, 3) and t_world_obj (3,): the pose they were scored at."""
+    and their squares, per candidate. They hold while the judged pose is the same (a settled
+    track keeps its refined pose), so a new view costs its own scoring only; a new pose starts
+    the cache again. R_world_obj (3, 3) and t_world_obj (3,): the pose they were scored at."""
 
     R_world_obj: np.ndarray | None = None
     t_world_obj: np.ndarray | None = None
@@ -189,8 +180,8 @@ def judge_turns(
         edges: :func:`distinct_edges` of the part for these turns; views: the track's kept
         views' maps (made with ``edge_config``); R_world_obj: (3, 3); t_world_obj: (3,);
         turns: (K, 3, 3) object-frame turns, the identity not among them; cache: the views'
-        sums of earlier calls, reused while the pose stays near the one they were scored at
-        (updated in place; for the same pose the judgement is that of scoring every view).
+        sums of an earlier call, reused where the pose is the same (updated in place; the
+        judgement is the same with or without it).
     Returns:
         None when no view shows ``min_samples`` distinguishing samples for the best of them.
     """
@@ -204,13 +195,11 @@ def judge_turns(
     cache = cache if cache is not None else TurnScoreCache()
     if not (
         cache.R_world_obj is not None
-        and rotation_angle(cache.R_world_obj @ R_world_obj.T) <= np.deg2rad(config.reuse_deg)
-        and np.linalg.norm(cache.t_world_obj - t_world_obj) <= config.reuse_frac * edges.diameter
+        and np.array_equal(cache.R_world_obj, R_world_obj)
+        and np.array_equal(cache.t_world_obj, t_world_obj)
     ):
         cache.R_world_obj, cache.t_world_obj = R_world_obj.copy(), t_world_obj.copy()
         cache.entries = {}
-    else:  # the views are scored at the cache's pose, to which these sums belong
-        R_world_obj, t_world_obj = cache.R_world_obj, cache.t_world_obj
     todo = [v for v in views if _key(v) not in cache.entries]
     if todo:
         for v, sums in zip(
