@@ -257,24 +257,21 @@ def tracker_config(
             for k, v in verification.items()
             if not k.startswith(("edges.", "refinement.", "turns."))
         }
-        edges = {k[len("edges.") :]: v for k, v in verification.items() if k.startswith("edges.")}
-        turns = {k[len("turns.") :]: v for k, v in verification.items() if k.startswith("turns.")}
         try:
             verification_config = dataclasses.replace(config.verification, **own)
         except ValueError as err:
             raise PosefuseError(f"--verification: {err}") from None
-        if edges:
+        for name in ("edges", "turns"):  # the settings the verification's config holds
+            nested = {
+                k[len(name) + 1 :]: v for k, v in verification.items() if k.startswith(f"{name}.")
+            }
+            if not nested:
+                continue
             try:
-                edge_config = dataclasses.replace(verification_config.edges, **edges)
+                inner = dataclasses.replace(getattr(verification_config, name), **nested)
             except ValueError as err:
-                raise PosefuseError(f"--verification edges.*: {err}") from None
-            verification_config = dataclasses.replace(verification_config, edges=edge_config)
-        if turns:
-            try:
-                judge = dataclasses.replace(verification_config.turns, **turns)
-            except ValueError as err:
-                raise PosefuseError(f"--verification turns.*: {err}") from None
-            verification_config = dataclasses.replace(verification_config, turns=judge)
+                raise PosefuseError(f"--verification {name}.*: {err}") from None
+            verification_config = dataclasses.replace(verification_config, **{name: inner})
         config = dataclasses.replace(config, verification=verification_config)
     if no_verify:
         config = dataclasses.replace(
