@@ -84,6 +84,10 @@ class Settings(BaseSettings):
     # deferred, so that no frame waits for it (service/worker.py): a track's pose is published
     # at once from its mixture, then verified when no frame waits (POSEFUSE_VERIFY=0: off)
     verify: bool = True
+    # a near-symmetric part's turns (a gear's teeth) judged by the edges that tell them apart
+    # (estimator/verification/turns.py); POSEFUSE_VERIFY_TURNS=0: every turn published open,
+    # which spares a cell with many such parts in view its cost (docs/verification.md)
+    verify_turns: bool = True
     # while frames wait, the share of the worker's time the verification may still take, so
     # that its backlog is never starved; 0: only while no frame waits, which never costs a
     # frame. 0.3 cut the p95 image -> verified pose at 10 Hz with 7 parts from 1.9 to 0.6 s,

@@ -15,6 +15,7 @@ behind would.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections import deque
@@ -185,8 +186,14 @@ class EstimatorWorker:
 
 def tracker_config(settings) -> TrackerConfig:
     """The service's estimator settings: verification as ``settings.verify`` says, deferred
-    (the frame path never waits for it; see the module docstring)."""
-    return TrackerConfig.with_verification(settings.verify, deferred=True)
+    (the frame path never waits for it; see the module docstring), and the turn judge as
+    ``settings.verify_turns`` says."""
+    config = TrackerConfig.with_verification(settings.verify, deferred=True)
+    if settings.verify_turns:
+        return config
+    verification = config.verification
+    turns = dataclasses.replace(verification.turns, enabled=False)
+    return dataclasses.replace(config, verification=dataclasses.replace(verification, turns=turns))
 
 
 def make_detector(settings, catalog):

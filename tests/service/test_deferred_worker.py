@@ -41,6 +41,10 @@ def test_the_daemon_is_verified_by_default_and_can_be_told_not_to(monkeypatch):
     assert Settings().verify
     config = tracker_config(Settings())
     assert config.verification.enabled and config.deferred_verification
+    assert config.verification.turns.enabled
+    monkeypatch.setenv("POSEFUSE_VERIFY_TURNS", "0")
+    judge_off = tracker_config(Settings())
+    assert judge_off.verification.enabled and not judge_off.verification.turns.enabled
     monkeypatch.setenv("POSEFUSE_VERIFY", "0")
     assert not tracker_config(Settings()).verification.enabled
 
