@@ -332,7 +332,7 @@ class PoseStage:
             vcfg,
             track.scores,
         )
-        track.verdict = verdict
+        track.verdict, track.turns = verdict, None  # judged again after it (check)
         rcfg = self.refinement_config(track.obj_id)
         previous, track.refined = track.refined, None
         if verdict is None or not rcfg.enabled:

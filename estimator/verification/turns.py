@@ -154,12 +154,15 @@ def distinct_edges(
 @dataclass(eq=False)
 class TurnScoreCache:
     """Each kept view's sums for the pose and its turns, (3, H): shown samples, their distances
-    and their squares, per candidate. They hold while the judged pose is the same (a settled
-    track keeps its refined pose), so a new view costs its own scoring only; a new pose starts
-    the cache again. R_world_obj (3, 3) and t_world_obj (3,): the pose they were scored at."""
+    and their squares, per candidate. They hold while the judged pose, the turns and the samples
+    are the same (a settled track keeps its refined pose), so a new view costs its own scoring
+    only; anything else starts the cache again. R_world_obj (3, 3) and t_world_obj (3,): the
+    pose they were scored at."""
 
     R_world_obj: np.ndarray | None = None
     t_world_obj: np.ndarray | None = None
+    candidates: np.ndarray | None = None  # (H, 3, 3) the identity and the turns
+    samples: int = 0  # the distinguishing samples they were read with
     entries: dict = field(default_factory=dict)  # _key(view) -> (3, H)
 
 
@@ -197,8 +200,11 @@ def judge_turns(
         cache.R_world_obj is not None
         and np.array_equal(cache.R_world_obj, R_world_obj)
         and np.array_equal(cache.t_world_obj, t_world_obj)
-    ):
+        and np.array_equal(cache.candidates, candidates)
+        and cache.samples == len(edges.points)
+    ):  # another pose, other turns or other samples (a catalog changed since a snapshot)
         cache.R_world_obj, cache.t_world_obj = R_world_obj.copy(), t_world_obj.copy()
+        cache.candidates, cache.samples = candidates.copy(), len(edges.points)
         cache.entries = {}
     todo = [v for v in views if _key(v) not in cache.entries]
     if todo:
@@ -212,10 +218,12 @@ def judge_turns(
     for stamp in [s for s in cache.entries if s not in kept]:
         del cache.entries[stamp]
     n, total, squares = np.stack([cache.entries[_key(v)] for v in views]).sum(axis=0)
-    mean = np.where(n > 0, total / np.maximum(n, 1), np.inf)
-    best = int(np.argmin(mean))
-    if n[best] < config.min_samples:
+    # a candidate that shows fewer than min_samples is no winner: a few samples can fit by
+    # chance; it stays open against the winner (its odds below are 1)
+    mean = np.where(n >= config.min_samples, total / np.maximum(n, 1), np.inf)
+    if not np.isfinite(mean).any():
         return None
+    best = int(np.argmin(mean))
     # the spread of one sample's distance, pooled over the candidates' samples; a floor of a
     # tenth of a pixel keeps a perfect fit from ruling everything out
     shown = n > 0

@@ -163,3 +163,25 @@ def test_the_views_sums_kept_for_the_same_pose_give_the_same_judgement():
     again = judge_turns(distinct, views[1:], other, t, QUARTERS, EDGES, JUDGE)
     assert len(cache.entries) == 3 and np.array_equal(cache.R_world_obj, other)
     assert np.array_equal(moved.odds, again.odds) and moved.samples == again.samples
+
+
+def test_a_turn_that_shows_too_few_samples_never_wins_and_stays_open():
+    """A candidate seen in fewer than min_samples samples may fit best by chance: it is no
+    winner, and its odds against the winner are 1 (nothing rules it out)."""
+    from posefuse.estimator.verification.turns import _key
+
+    mesh = _plate()
+    d = _diameter(mesh)
+    distinct = distinct_edges(mesh, d, QUARTERS, EDGES, JUDGE)
+    view = _views(mesh, T_WORLD_OBJ, ABOVE[:1])[0]
+    R, t = T_WORLD_OBJ[:3, :3], T_WORLD_OBJ[:3, 3]
+    cache = TurnScoreCache()
+    judge_turns(distinct, [view], R, t, QUARTERS, EDGES, JUDGE, cache=cache)
+    n = np.array([100.0, 3.0, 100.0, 100.0])  # the pose, then the three quarter turns
+    mean = np.array([2.0, 0.1, 5.0, 6.0])  # the second fits best, on three samples
+    cache.entries[_key(view)] = np.stack([n, n * mean, n * (mean**2 + 1.0)])
+    judged = judge_turns(distinct, [view], R, t, QUARTERS, EDGES, JUDGE, cache=cache)
+    assert np.array_equal(judged.turn, np.eye(3)) and judged.samples == 100
+    # the alternatives are the turns in order: the quarter turn seen three times first
+    assert np.allclose(judged.alternatives, QUARTERS)
+    assert judged.odds[0] == 1.0 and np.all(judged.odds[1:] < 1.0)
