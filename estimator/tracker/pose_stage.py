@@ -399,7 +399,7 @@ class PoseStage:
             R_world_obj = verdict.R_world_obj[verdict.best]
             t_world_obj = track.estimate.t_world_obj
         vcfg = self.config.verification
-        if getattr(track, "turn_scores", None) is None:  # a track restored from before it
+        if track.turn_scores is None:  # first judged, or restored from before the judge
             track.turn_scores = turn_judge.TurnScoreCache()
         track.turns = turn_judge.judge_turns(
             distinct,
