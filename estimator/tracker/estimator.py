@@ -242,13 +242,16 @@ class MultiViewEstimator:
         return [e for k in self.checks_due() if (e := self.check_next(k)) is not None]
 
     def estimates(self, include_tentative: bool = True) -> list[ObjectEstimate]:
-        """All current tracks, in object_id order."""
+        """All current tracks, in object_id order; without ``include_tentative``, those
+        published as confirmed (a confirmed track whose verified pose fits its views poorly is
+        published as tentative, ``VerificationConfig.max_fit``)."""
         stamp = self.last_stamp_ns or 0
-        return [
+        estimates = [
             self._estimate(self.tracks[k], stamp)
             for k in sorted(self.tracks)
             if include_tentative or self.tracks[k].status == CONFIRMED
         ]
+        return [e for e in estimates if include_tentative or e.status == CONFIRMED]
 
     def expected_parts(
         self,

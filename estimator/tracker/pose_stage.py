@@ -243,10 +243,12 @@ class PoseStage:
             # the new views may show what tells the turns apart; the pose is the same, so
             # only they are scored (TurnScoreCache)
             self.judge_turns(track)
+            self.measure_fit(track)
             return
         if (stale and track.edge_views) or added:
             self.verify(track, new_views=bool(added))
             self.judge_turns(track)
+            self.measure_fit(track)
 
     def check_due(self, track: Track) -> None:
         """The check a deferred track waits for (TrackerConfig.deferred_verification), with
@@ -265,7 +267,7 @@ class PoseStage:
         except Exception:
             # the last verdict no longer speaks for the views: the mixture's pose is published
             # (unverified) until a new view asks again
-            track.verdict, track.refined, track.turns = None, None, None
+            track.verdict, track.refined, track.turns, track.fit = None, None, None, None
             raise
 
     def settled(self, track: Track) -> bool:
@@ -379,25 +381,55 @@ class PoseStage:
         )
         self._challenge(track, edges, rcfg)
 
-    def judge_turns(self, track: Track) -> None:
-        """Which of the part's unasked near-symmetric turns (a gear's teeth) the kept views
-        show, at the verified pose (the refined one when accepted), by the edges that tell them
-        apart (:func:`estimator.verification.turns.judge_turns`); None without a verdict, for
-        a part without such turns, or where no view shows enough of those edges."""
-        track.turns = None
+    @staticmethod
+    def verified_pose(track: Track) -> tuple[np.ndarray, np.ndarray] | None:
+        """(R_world_obj (3, 3), t_world_obj (3,)) the track publishes as verified: the refined
+        pose where the refinement was accepted, else the verdict's winner at the track's
+        translation, turned as the turn judge says; None without a verdict."""
         verdict = track.verdict
         if verdict is None:
-            return
-        self.model_edges(track.obj_id)
-        distinct = self.distinct.get(track.obj_id)
-        if distinct is None:
-            return
+            return None
         refined = track.refined
         if refined is not None and refined.accepted:
             R_world_obj, t_world_obj = refined.R_world_obj, refined.t_world_obj
         else:
             R_world_obj = verdict.R_world_obj[verdict.best]
             t_world_obj = track.estimate.t_world_obj
+        if track.turns is not None:
+            R_world_obj = R_world_obj @ track.turns.turn
+        return R_world_obj, t_world_obj
+
+    def measure_fit(self, track: Track) -> None:
+        """``track.fit``: the verified pose's mean cost in the kept views (the cost of
+        :func:`score_hypotheses`, as the challenge reads it); None without a verdict or views.
+        Published above ``VerificationConfig.max_fit``, a confirmed track says tentative;
+        without that gate nothing is measured (None)."""
+        pose = self.verified_pose(track)
+        views = [v for v in track.edge_views if isinstance(v, EdgeView)]
+        if pose is None or not views or self.config.verification.max_fit is None:
+            track.fit = None
+            return
+        edges, _ = self.model_edges(track.obj_id)
+        R_world_obj, t_world_obj = pose
+        cost = score_hypotheses(
+            edges, views, R_world_obj[None], t_world_obj, self.config.verification
+        )
+        track.fit = float(cost.mean())
+
+    def judge_turns(self, track: Track) -> None:
+        """Which of the part's unasked near-symmetric turns (a gear's teeth) the kept views
+        show, at the verified pose (the refined one when accepted), by the edges that tell them
+        apart (:func:`estimator.verification.turns.judge_turns`); None without a verdict, for
+        a part without such turns, or where no view shows enough of those edges."""
+        track.turns = None
+        pose = self.verified_pose(track)  # not turned: the judgement is forgotten above
+        if pose is None:
+            return
+        self.model_edges(track.obj_id)
+        distinct = self.distinct.get(track.obj_id)
+        if distinct is None:
+            return
+        R_world_obj, t_world_obj = pose
         vcfg = self.config.verification
         if track.turn_scores is None:  # first judged, or restored from before the judge
             track.turn_scores = turn_judge.TurnScoreCache()

@@ -8,7 +8,10 @@ accepted refinement its full pose and covariance are published (``verified``, un
 verification waits for views fused since). A verified winner whose near-symmetric turns the
 views cannot tell from it (:func:`~estimator.verification.verify.alternative_turns`) is
 published as ambiguous: the turns beside it with their odds, and its rotation covariance widened
-to cover each of them.
+to cover each of them. A confirmed track whose verified pose fits its kept views worse than
+``VerificationConfig.max_fit`` (``Track.fit``) is published as tentative: no pose of the part
+fits what the views show there, so it is no part to reach for (a track founded between parts,
+or holding two parts' centres).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from posefuse.estimator.core.geometry import so3_log
-from posefuse.estimator.tracker.tracks import Track
+from posefuse.estimator.tracker.tracks import CONFIRMED, TENTATIVE, Track
 from posefuse.estimator.verification.verify import VerificationConfig, alternative_turns
 
 ROTATION_UNKNOWN_VAR = np.pi**2 / 3  # variance of a rotation angle uniform on [-pi, pi]
@@ -158,6 +161,15 @@ def published_estimate(
         confidence = float(
             weights[components.index(best)] * mean_similarity * support_factor(track)
         )
+    status = track.status
+    if (
+        status == CONFIRMED
+        and verification.max_fit is not None
+        and track.fit is not None
+        and track.fit > verification.max_fit
+    ):
+        # no pose of the part fits what its views show there: not a part to reach for
+        status = TENTATIVE
     return ObjectEstimate(
         stamp_ns=stamp_ns,
         object_id=track.object_id,
@@ -168,7 +180,7 @@ def published_estimate(
         confidence=confidence,
         hypotheses=hypotheses,
         n_views=track.views_seen,
-        status=track.status,
+        status=status,
         verified=verified,
         alternatives=alternatives,
         ambiguity=ambiguity,

@@ -102,6 +102,10 @@ class Track:
     # refinement (estimator.verification.turns); None: not judged, every turn open
     turns: TurnJudgement | None = None
     turn_scores: TurnScoreCache | None = None  # the judge's per-view sums, reused
+    # the verified pose's mean cost in the kept views, measured after each check (None: not
+    # verified since the mixture changed); above VerificationConfig.max_fit the track is
+    # published as tentative
+    fit: float | None = None
     # the translation prior (3,) the refinement took, and the stamps of the views the refined
     # pose has been checked against (the settled check)
     refined_t_prior: np.ndarray | None = None
@@ -334,7 +338,7 @@ class TrackBook:
         views = sorted(keep.edge_views + gone.edge_views, key=lambda v: v.stamp_ns)
         keep.edge_views = views[-self.config.verification.max_views :]
         # the mixture changes: verified again next view
-        keep.verdict, keep.refined, keep.turns = None, None, None
+        keep.verdict, keep.refined, keep.turns, keep.fit = None, None, None, None
         waiting = [s for s in (keep.check_since, gone.check_since) if s is not None]
         keep.check_since = min(waiting) if waiting else None
         keep.check_added = keep.check_added | gone.check_added

@@ -102,6 +102,12 @@ class VerificationConfig:
     # the temperature (None: never challenged). Chosen on the tuning sets
     # (docs/lab/2026-12-05-verification-challenge-and-cost-drop.md)
     challenge_cost: float | None = 0.6
+    # a confirmed track whose verified pose still costs more than this in its kept views (the
+    # cost challenge_cost reads) is published as tentative: no pose of the part fits what the
+    # views show there (a track founded between parts, or holding two parts' centres). None:
+    # every confirmed track is published as confirmed. Chosen on the tuning sets
+    # (docs/lab/2026-12-06-verification-poor-fit-tentative.md)
+    max_fit: float | None = 1.4
     # the chamfer sums by the compiled kernel (estimator.verification.kernels), or by the numpy
     # code it replaced (the reference, equal to rounding)
     compiled: bool = True
@@ -115,6 +121,7 @@ class VerificationConfig:
             self.sample_stride < 1
             or self.max_views < 1
             or (self.challenge_cost is not None and self.challenge_cost < 0)
+            or (self.max_fit is not None and not self.max_fit > 0)
         ):
             raise ValueError(f"invalid verification config: {self}")
 
