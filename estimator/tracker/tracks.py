@@ -102,9 +102,9 @@ class Track:
     # refinement (estimator.verification.turns); None: not judged, every turn open
     turns: TurnJudgement | None = None
     turn_scores: TurnScoreCache | None = None  # the judge's per-view sums, reused
-    # the verified pose's mean cost in the kept views, measured after each check (None: not
-    # verified since the mixture changed); above VerificationConfig.max_fit the track is
-    # published as tentative
+    # the verified pose's mean cost in the kept views, measured after each check and kept
+    # while a deferred check waits (None: not measured since a merge or a failed check, or
+    # the gate is off); above VerificationConfig.max_fit the track is published as tentative
     fit: float | None = None
     # the translation prior (3,) the refinement took, and the stamps of the views the refined
     # pose has been checked against (the settled check)
