@@ -38,6 +38,12 @@ DETECTION_LEGEND = (
     "(found instances per estimate), and the lenient ADI < 0.1 d."
 )
 
+NOT_DETECTED_LEGEND = (
+    "The instances not detected, by how many of the views so far detected them at all: never "
+    "(the front end missed it in every view), in one view only (no second view to found a "
+    "track with), or in two or more (held detections that founded no track)."
+)
+
 AMBIGUITY_LEGEND = (
     "The published poses of confirmed tracks whose instance shows more than 75%: those "
     "published unambiguous and the share right (ADD-sym < 0.1 d), those published ambiguous "
@@ -92,7 +98,7 @@ def run_and_write(
     # lazy: the estimator and its scoring load scipy, trimesh and cv2 (~0.6 s)
     from posefuse.estimator.tracker import MultiViewEstimator
     from posefuse.evaluation.ambiguity import ambiguity_markdown, write_ambiguity
-    from posefuse.evaluation.fates import fate_table
+    from posefuse.evaluation.fates import fate_table, not_detected_table
     from posefuse.evaluation.run_dataset import (
         CHECKPOINTS,
         run_dataset,
@@ -152,7 +158,12 @@ def run_and_write(
         "Where each scored instance ended (estimator/fates.py gives the rules, first that "
         f"applies); profile {dataset.profile}, front end {frontend_name}."
     )
-    (out / "fates.md").write_text(f"{report.fates_legend}\n\n{report.fates}\n")
+    missed = not_detected_table(
+        [f for f in run.fates if f.n_views >= 2], dataset.catalog, dataset.profile
+    )
+    (out / "fates.md").write_text(
+        f"{report.fates_legend}\n\n{report.fates}\n\n{NOT_DETECTED_LEGEND}\n\n{missed}\n"
+    )
     from posefuse.evaluation.confidence import (
         CONFIDENCE_LEGEND,
         confidence_markdown,

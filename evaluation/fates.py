@@ -7,7 +7,11 @@ annotated instance with ``visib_fract > min_visib`` in the checkpoint's view get
 that applies, in this order:
 
 1. ``correct``: an estimate found it (ADD-sym < 0.1 d, BOP's matching, as the reports count);
-2. ``not detected``: fewer than ``min_views`` of its detections so far (a track needs two);
+2. ``not detected``: fewer than ``min_views`` of its detections taken by tracks so far (a track
+   needs two). Beside the fate, each instance carries how many views so far detected it at
+   all (``detected_views``, held detections included): a part never detected is the front
+   end's miss; one detected in a view or more that never found a track is the founding's
+   (:func:`not_detected_table`);
 3. ``split``: its detections went to two or more of the tracks alive at the checkpoint, none of
    them holding most of them (a track dropped since, such as one founded on a wrong pairing and
    later let go, holds nothing: its detections count only towards rule 2). Where one live track
@@ -68,6 +72,7 @@ class InstanceFate:
     obj_id: int
     gt_idx: int
     fate: str
+    detected_views: int = 0  # views so far whose front end detected it (held ones included)
 
 
 def _rotation_residual_deg(model, T_est: np.ndarray, T_gt: np.ndarray) -> float:
@@ -88,12 +93,14 @@ def instance_fates(
     min_views: int = 2,
     min_visib: float = 0.75,
     threshold: float = 0.1,
+    detected: dict[int, int] | None = None,
 ) -> list[InstanceFate]:
     """The fate of each scored instance of ``view`` (a BopView) after ``n_views`` views.
 
     tracks: every track of the estimator (with or without a pose); members: object_id -> the
     instance index of each detection the track took (-1 for false positives), for dropped
-    tracks too.
+    tracks too; detected: instance index -> how many views so far detected it, whether a
+    track took the detection or not (None: not counted, 0 each).
     """
     posed = [t for t in tracks if t.T_cam_obj is not None]
     correct: set[int] = set()
@@ -137,7 +144,8 @@ def instance_fates(
             min_views,
             threshold,
         )
-        out.append(InstanceFate(view.scene_id, view.im_id, n_views, gt.obj_id, k, fate))
+        seen = (detected or {}).get(k, 0)
+        out.append(InstanceFate(view.scene_id, view.im_id, n_views, gt.obj_id, k, fate, seen))
     return out
 
 
@@ -200,4 +208,26 @@ def fate_table(fates: list[InstanceFate], catalog, profile: str) -> str:
             counts = Counter(f.fate for f in rows)
             cells = " | ".join(str(counts.get(fate, 0)) for fate in FATES)
             lines.append(f"| {profile} | {name} | {n} | {len(rows)} | {cells} |")
+    return "\n".join(lines)
+
+
+def not_detected_table(fates: list[InstanceFate], catalog, profile: str) -> str:
+    """Markdown: per part and number of views, the instances ``not detected``, by how many
+    views detected them at all: never (the front end's miss), in one view (no second view to
+    found a track with), or in two or more (detections that founded no track, or too few)."""
+    lines = [
+        "| profile | object | views | not detected | never detected | in one view "
+        "| in two or more views |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for n in sorted({f.n_views for f in fates}):
+        missed = [f for f in fates if f.n_views == n and f.fate == "not detected"]
+        groups = [(catalog[o].name, [f for f in missed if f.obj_id == o]) for o in catalog]
+        for name, rows in [*groups, ("**all**", missed)]:
+            if not rows:
+                continue
+            views = Counter(min(f.detected_views, 2) for f in rows)
+            lines.append(
+                f"| {profile} | {name} | {n} | {len(rows)} | {views[0]} | {views[1]} | {views[2]} |"
+            )
     return "\n".join(lines)

@@ -10,7 +10,7 @@ distance from the last camera.
 from __future__ import annotations
 
 import csv
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -171,7 +171,14 @@ def run_dataset(
                         PoseResult(scene_id, im_id, e.class_id, e.confidence, T_cam_obj)
                     )
             if rotation:
-                fates += instance_fates(view, dataset.catalog, count, poses, dict(members))
+                fates += instance_fates(
+                    view,
+                    dataset.catalog,
+                    count,
+                    poses,
+                    dict(members),
+                    detected=Counter(k for seen in labels.values() for k in set(seen) if k >= 0),
+                )
             identity = track_identities(members)
             if rotation:
                 covariance[count] += _published_nees(estimates, view, identity, dataset.catalog)
@@ -238,9 +245,11 @@ def write_fates(path: str | Path, fates: tuple[InstanceFate, ...]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(["scene_id", "im_id", "n_views", "obj_id", "gt_idx", "fate"])
+        w.writerow(["scene_id", "im_id", "n_views", "obj_id", "gt_idx", "fate", "detected_views"])
         for x in fates:
-            w.writerow([x.scene_id, x.im_id, x.n_views, x.obj_id, x.gt_idx, x.fate])
+            w.writerow(
+                [x.scene_id, x.im_id, x.n_views, x.obj_id, x.gt_idx, x.fate, x.detected_views]
+            )
     return path
 
 

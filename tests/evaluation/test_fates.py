@@ -5,7 +5,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from posefuse.evaluation.fates import FATES, TrackPose, fate_table, instance_fates
+from posefuse.evaluation.fates import (
+    FATES,
+    TrackPose,
+    fate_table,
+    instance_fates,
+    not_detected_table,
+)
 
 SCREW = 2  # continuous symmetry about z
 
@@ -106,3 +112,29 @@ def test_every_fate_in_order(robi_catalog):
     cells = [c.strip() for c in all_row.strip("|").split("|")]
     assert cells[:4] == ["robi", "**all**", "4", "12"]
     assert sum(int(c) for c in cells[4:]) == 12 and len(cells[4:]) == len(FATES)
+
+
+def test_an_instance_not_detected_counts_the_views_that_detected_it(robi_catalog):
+    """Not detected: fewer than two detections taken by tracks. How many views detected it at
+    all (held detections too) tells the front end's miss from the founding's."""
+    gts = [_Gt(SCREW, _T(t=(0.2 * k - 0.4, 0, 0.7))) for k in range(5)]
+    tracks = [TrackPose("a", SCREW, 0.9, gts[3].T_cam_obj.copy())]
+    members = {"a": [3, 3, 3], "x": [4]}  # 4: one detection taken by a dropped track
+    # 0 never detected; 1 detected in one view (held); 2 in three views, none taken
+    detected = {1: 1, 2: 3, 3: 3, 4: 2}
+    fates = instance_fates(_View(gts), robi_catalog, 4, tracks, members, detected=detected)
+    got = {f.gt_idx: (f.fate, f.detected_views) for f in fates}
+    assert got == {
+        0: ("not detected", 0),
+        1: ("not detected", 1),
+        2: ("not detected", 3),
+        3: ("correct", 3),
+        4: ("not detected", 2),
+    }
+    table = not_detected_table(fates, robi_catalog, "robi")
+    all_row = next(line for line in table.splitlines() if "**all**" in line)
+    cells = [c.strip() for c in all_row.strip("|").split("|")]
+    assert cells == ["robi", "**all**", "4", "4", "1", "1", "2"]
+    # without the counts every instance reads as never detected
+    plain = instance_fates(_View(gts), robi_catalog, 4, tracks, members)
+    assert {f.detected_views for f in plain} == {0}

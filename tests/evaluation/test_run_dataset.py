@@ -173,6 +173,16 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     assert "| confidence >= | 2 views" in kept and kept in text + "\n"
     first = next(line for line in kept.splitlines() if line.startswith("| 0 |"))
     assert f"{100 * at4['add_sym']:.1f}%, {100 * at4['precision']:.1f}%" in first
+    # each scored instance counts the views that detected it: a correct one needs two, none
+    # more than the views seen; the not-detected ones are tallied by that count in fates.md
+    import csv
+
+    rows = list(csv.DictReader((out / "fates.csv").open()))
+    assert rows and all(0 <= int(r["detected_views"]) <= int(r["n_views"]) for r in rows)
+    assert all(int(r["detected_views"]) >= 2 for r in rows if r["fate"] == "correct")
+    assert any(int(r["detected_views"]) > 0 for r in rows)
+    fates_md = (out / "fates.md").read_text()
+    assert "| never detected | in one view | in two or more views |" in fates_md
 
 
 def test_verification_settings_from_the_command_line_replace_only_what_they_name():
