@@ -193,21 +193,27 @@ def _fate(
     return "rotation off"
 
 
+def _by_views_and_part(fates: list[InstanceFate], catalog):
+    """(views, part name, its fates) per number of views and part that has any, each number of
+    views closed by ("**all**", every part's fates)."""
+    for n in sorted({f.n_views for f in fates}):
+        at_n = [f for f in fates if f.n_views == n]
+        groups = [(catalog[o].name, [f for f in at_n if f.obj_id == o]) for o in catalog]
+        for name, rows in [*groups, ("**all**", at_n)]:
+            if rows:
+                yield n, name, rows
+
+
 def fate_table(fates: list[InstanceFate], catalog, profile: str) -> str:
     """Markdown: per part and number of views, how many instances met each fate."""
     lines = [
         f"| profile | object | views | instances | {' | '.join(FATES)} |",
         "|---|---|---|---|" + "---|" * len(FATES),
     ]
-    for n in sorted({f.n_views for f in fates}):
-        at_n = [f for f in fates if f.n_views == n]
-        groups = [(catalog[o].name, [f for f in at_n if f.obj_id == o]) for o in catalog]
-        for name, rows in [*groups, ("**all**", at_n)]:
-            if not rows:
-                continue
-            counts = Counter(f.fate for f in rows)
-            cells = " | ".join(str(counts.get(fate, 0)) for fate in FATES)
-            lines.append(f"| {profile} | {name} | {n} | {len(rows)} | {cells} |")
+    for n, name, rows in _by_views_and_part(fates, catalog):
+        counts = Counter(f.fate for f in rows)
+        cells = " | ".join(str(counts.get(fate, 0)) for fate in FATES)
+        lines.append(f"| {profile} | {name} | {n} | {len(rows)} | {cells} |")
     return "\n".join(lines)
 
 
@@ -220,14 +226,10 @@ def not_detected_table(fates: list[InstanceFate], catalog, profile: str) -> str:
         "| in two or more views |",
         "|---|---|---|---|---|---|---|",
     ]
-    for n in sorted({f.n_views for f in fates}):
-        missed = [f for f in fates if f.n_views == n and f.fate == "not detected"]
-        groups = [(catalog[o].name, [f for f in missed if f.obj_id == o]) for o in catalog]
-        for name, rows in [*groups, ("**all**", missed)]:
-            if not rows:
-                continue
-            views = Counter(min(f.detected_views, 2) for f in rows)
-            lines.append(
-                f"| {profile} | {name} | {n} | {len(rows)} | {views[0]} | {views[1]} | {views[2]} |"
-            )
+    missed = [f for f in fates if f.fate == "not detected"]
+    for n, name, rows in _by_views_and_part(missed, catalog):
+        views = Counter(min(f.detected_views, 2) for f in rows)
+        lines.append(
+            f"| {profile} | {name} | {n} | {len(rows)} | {views[0]} | {views[1]} | {views[2]} |"
+        )
     return "\n".join(lines)
