@@ -500,5 +500,6 @@ class PoseStage:
             len(views),
             vcfg.temperature,
         )
-        track.verdict = replace(verdict, cost=cost, weights=weights, best=c)
+        # the refined costs decide: no lead is kept against the views any more
+        track.verdict = replace(verdict, cost=cost, weights=weights, best=c, overruled=-1)
         track.refined = challenger

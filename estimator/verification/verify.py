@@ -45,6 +45,7 @@ __all__ = [
     "cached_scores",
     "hypotheses",
     "is_new_viewpoint",
+    "lead_hypothesis",
     "near_symmetries",
     "near_symmetry_turns",
     "refinement_reach_deg",
@@ -108,6 +109,16 @@ class VerificationConfig:
     # every confirmed track is published as confirmed. Chosen on the tuning sets
     # (docs/lab/2026-12-06-verification-poor-fit-tentative.md)
     max_fit: float | None = 1.4
+    # a hypothesis more than flip_deg from the mixture's favourite (its heaviest component as
+    # it is; a part seen end over end, say) leads only where the views agree on it: over at
+    # least flip_min_views views, its cost below the favourite's by a mean of at least flip_z
+    # standard errors of the per-view differences (:func:`lead_hypothesis`). Otherwise the
+    # favourite leads, and a flip that is one of its near-symmetric turns is published beside
+    # it. None: the lowest mean cost leads. Chosen on the tuning sets
+    # (docs/lab/2026-12-06-verification-flips-need-agreeing-views.md)
+    flip_z: float | None = 1.0
+    flip_min_views: int = 3
+    flip_deg: float = 90.0
     # the chamfer sums by the compiled kernel (estimator.verification.kernels), or by the numpy
     # code it replaced (the reference, equal to rounding)
     compiled: bool = True
@@ -122,6 +133,9 @@ class VerificationConfig:
             or self.max_views < 1
             or (self.challenge_cost is not None and self.challenge_cost < 0)
             or (self.max_fit is not None and not self.max_fit > 0)
+            or (self.flip_z is not None and not self.flip_z >= 0)
+            or self.flip_min_views < 2
+            or not 0 < self.flip_deg <= 180
         ):
             raise ValueError(f"invalid verification config: {self}")
 
@@ -193,7 +207,9 @@ class Verdict:
     R_world_obj: (H, 3, 3) the hypotheses; component: (H,) the mixture component of each;
     variant: (H,) index into the variants (0: the component itself); cost: (H,) mean over views
     of the truncated chamfer cost (:func:`score_hypotheses`); per_view: (H, V); weights: (C,) the
-    components' weights after re-weighting; best: index of the leading hypothesis.
+    components' weights after re-weighting; best: index of the leading hypothesis; overruled:
+    the flip with a lower mean cost that the views did not agree on (:func:`lead_hypothesis`),
+    -1 when the lowest mean cost leads.
     """
 
     R_world_obj: np.ndarray
@@ -203,6 +219,7 @@ class Verdict:
     per_view: np.ndarray
     weights: np.ndarray
     best: int
+    overruled: int = -1
 
 
 def alternative_turns(
@@ -211,7 +228,8 @@ def alternative_turns(
     """The winner's near-symmetric turns, and how likely the views find each against it.
 
     The winner's alternatives are the hypotheses of its own component turned by the other
-    variants (:func:`hypotheses`). An alternative's cost is the lowest of the hypotheses within
+    variants (:func:`hypotheses`), and the flip the views could not agree on when the winner
+    was kept against it (``verdict.overruled``). An alternative's cost is the lowest of the hypotheses within
     ``near_deg`` of it (another component may lie there too), and its odds against the winner
     are ``exp(-V (cost - best) / temperature)`` over the V views, the re-weighting's own factor:
     1 when the views cannot tell the two apart, near 0 when they plainly can.
@@ -222,6 +240,8 @@ def alternative_turns(
     """
     b = verdict.best
     others = np.flatnonzero(verdict.component == verdict.component[b])
+    if verdict.overruled >= 0 and verdict.overruled not in others:
+        others = np.append(others, verdict.overruled)
     others = others[others != b]
     if len(others) == 0:
         return np.zeros((0, 3, 3)), np.zeros(0)
@@ -569,9 +589,56 @@ def verify(
     else:
         per_view = cached_scores(edges, views, R_h, t_world_obj, config, cache)
     cost = per_view.mean(axis=1)
-    best = int(np.argmin(cost))
+    best = lead_hypothesis(per_view, R_h, comp, var, component_weights, config)
     weights = reweight(cost, comp, component_weights, len(views), config.temperature)
-    return Verdict(R_h, comp, var, cost, per_view, weights, best)
+    lowest = int(np.argmin(cost))
+    overruled = lowest if lowest != best else -1
+    return Verdict(R_h, comp, var, cost, per_view, weights, best, overruled)
+
+
+def lead_hypothesis(
+    per_view: np.ndarray,
+    R_world_obj: np.ndarray,
+    component: np.ndarray,
+    variant: np.ndarray,
+    component_weights: np.ndarray,
+    config: VerificationConfig,
+) -> int:
+    """Which hypothesis leads: the lowest mean cost, unless it is a flip the views do not agree
+    on.
+
+    A flip is a hypothesis more than ``flip_deg`` from the favourite, the heaviest component as
+    it is (the templates' evidence). On a photograph whose edges fit every hypothesis about as
+    badly, half the views may prefer each of two poses, and the lowest mean cost is then a coin
+    the views toss. So over ``flip_min_views`` views or more, a flip leads only where the per-view
+    cost differences (favourite minus flip) have a mean of at least ``flip_z`` standard errors;
+    otherwise the favourite leads. With fewer views the lowest mean cost leads (a second view
+    plainly overturns a first view's flip), and so it does with ``flip_z`` None.
+
+    Args:
+        per_view: (H, V) costs; R_world_obj: (H, 3, 3) the hypotheses; component: (H,) index into
+        the components; variant: (H,) 0 for a component as it is; component_weights: (C,).
+    Returns:
+        the index of the leading hypothesis.
+    """
+    cost = per_view.mean(axis=1)
+    best = int(np.argmin(cost))
+    H, V = per_view.shape
+    if config.flip_z is None or V < config.flip_min_views:
+        return best
+    favourite = np.flatnonzero(
+        (component == int(np.argmax(component_weights))) & (np.asarray(variant) == 0)
+    )
+    if len(favourite) == 0:  # the heaviest component was not asked about
+        return best
+    fav = int(favourite[0])
+    if fav == best:
+        return best
+    if rotation_angle(R_world_obj[fav].T @ R_world_obj[best]) <= np.deg2rad(config.flip_deg):
+        return best
+    gain = per_view[fav] - per_view[best]  # (V,) > 0 where the view prefers the flip
+    standard_error = gain.std(ddof=1) / np.sqrt(V)
+    return best if gain.mean() >= config.flip_z * standard_error else fav
 
 
 def reweight(
