@@ -229,10 +229,11 @@ def alternative_turns(
 
     The winner's alternatives are the hypotheses of its own component turned by the other
     variants (:func:`hypotheses`), and the flip the views could not agree on when the winner
-    was kept against it (``verdict.overruled``). An alternative's cost is the lowest of the hypotheses within
-    ``near_deg`` of it (another component may lie there too), and its odds against the winner
-    are ``exp(-V (cost - best) / temperature)`` over the V views, the re-weighting's own factor:
-    1 when the views cannot tell the two apart, near 0 when they plainly can.
+    was kept against it (``verdict.overruled``). An alternative's cost is the lowest of the
+    hypotheses within ``near_deg`` of it (another component may lie there too), and its odds
+    against the winner are ``exp(-V (cost - best) / temperature)`` over the V views, the
+    re-weighting's own factor: 1 when the views cannot tell the two apart, near 0 when they
+    plainly can.
 
     Returns:
         turns: (A, 3, 3) object-frame rotations, the alternative being ``R_winner @ turn``;
