@@ -28,6 +28,7 @@ from posefuse.estimator.core.geometry import rotation_angle, so3_exp
 from posefuse.estimator.rotation.mixture import closest_equivalents
 from posefuse.estimator.verification import kernels
 from posefuse.estimator.verification.edge_maps import EdgeConfig, EdgeView, sample_maps
+from posefuse.estimator.verification.lead import lead_hypothesis, reweight
 from posefuse.estimator.verification.model_edges import (
     ModelEdges,
     pose_edges,
@@ -109,12 +110,10 @@ class VerificationConfig:
     # every confirmed track is published as confirmed. Chosen on the tuning sets
     # (docs/lab/2026-12-06-verification-poor-fit-tentative.md)
     max_fit: float | None = 1.4
-    # a hypothesis more than flip_deg from the mixture's favourite (its heaviest component as
-    # it is; a part seen end over end, say) leads only where the views agree on it: over at
-    # least flip_min_views views, its cost below the favourite's by a mean of at least flip_z
-    # standard errors of the per-view differences (:func:`lead_hypothesis`). Otherwise the
-    # favourite leads, and a flip that is one of its near-symmetric turns is published beside
-    # it. None: the lowest mean cost leads. Chosen on the tuning sets
+    # a hypothesis more than flip_deg from the mixture's favourite leads only over at least
+    # flip_min_views views that agree on it by flip_z standard errors; else the favourite leads
+    # and the flip is published beside it (estimator.verification.lead; None: the lowest mean
+    # cost leads). Chosen on the tuning sets
     # (docs/lab/2026-12-06-verification-flips-need-agreeing-views.md)
     flip_z: float | None = 1.0
     flip_min_views: int = 3
@@ -590,71 +589,9 @@ def verify(
     else:
         per_view = cached_scores(edges, views, R_h, t_world_obj, config, cache)
     cost = per_view.mean(axis=1)
-    best = lead_hypothesis(per_view, R_h, comp, var, component_weights, config)
+    flips = {k: getattr(config, k) for k in ("flip_z", "flip_min_views", "flip_deg")}
+    best = lead_hypothesis(per_view, R_h, comp, var, component_weights, **flips)
     weights = reweight(cost, comp, component_weights, len(views), config.temperature)
     lowest = int(np.argmin(cost))
     overruled = lowest if lowest != best else -1
     return Verdict(R_h, comp, var, cost, per_view, weights, best, overruled)
-
-
-def lead_hypothesis(
-    per_view: np.ndarray,
-    R_world_obj: np.ndarray,
-    component: np.ndarray,
-    variant: np.ndarray,
-    component_weights: np.ndarray,
-    config: VerificationConfig,
-) -> int:
-    """Which hypothesis leads: the lowest mean cost, unless it is a flip the views do not agree
-    on.
-
-    A flip is a hypothesis more than ``flip_deg`` from the favourite, the heaviest component as
-    it is (the templates' evidence). On a photograph whose edges fit every hypothesis about as
-    badly, half the views may prefer each of two poses, and the lowest mean cost is then a coin
-    the views toss. So over ``flip_min_views`` views or more, a flip leads only where the per-view
-    cost differences (favourite minus flip) have a mean of at least ``flip_z`` standard errors;
-    otherwise the favourite leads. With fewer views the lowest mean cost leads (a second view
-    plainly overturns a first view's flip), and so it does with ``flip_z`` None.
-
-    Args:
-        per_view: (H, V) costs; R_world_obj: (H, 3, 3) the hypotheses; component: (H,) index into
-        the components; variant: (H,) 0 for a component as it is; component_weights: (C,).
-    Returns:
-        the index of the leading hypothesis.
-    """
-    cost = per_view.mean(axis=1)
-    best = int(np.argmin(cost))
-    H, V = per_view.shape
-    if config.flip_z is None or V < config.flip_min_views:
-        return best
-    favourite = np.flatnonzero(
-        (component == int(np.argmax(component_weights))) & (np.asarray(variant) == 0)
-    )
-    if len(favourite) == 0:  # the heaviest component was not asked about
-        return best
-    fav = int(favourite[0])
-    if fav == best:
-        return best
-    if rotation_angle(R_world_obj[fav].T @ R_world_obj[best]) <= np.deg2rad(config.flip_deg):
-        return best
-    gain = per_view[fav] - per_view[best]  # (V,) > 0 where the view prefers the flip
-    standard_error = gain.std(ddof=1) / np.sqrt(V)
-    return best if gain.mean() >= config.flip_z * standard_error else fav
-
-
-def reweight(
-    cost: np.ndarray,
-    component: np.ndarray,
-    component_weights: np.ndarray,
-    n_views: int,
-    temperature: float,
-) -> np.ndarray:
-    """(C,) the components' weights after a verification: each verified component by its best
-    hypothesis' cost (``cost`` (H,), of ``component`` (H,)), ``exp(-V (cost - best) /
-    temperature)``; the components not asked keep their weight as scaled by the worst verified
-    cost (they cannot gain)."""
-    comp_cost = np.full(len(component_weights), cost.max())
-    np.minimum.at(comp_cost, component, cost)
-    w = np.asarray(component_weights, float)
-    scaled = w * np.exp(-n_views * (comp_cost - cost.min()) / temperature)
-    return scaled / scaled.sum() if scaled.sum() > 0 else w

@@ -14,10 +14,26 @@ from posefuse.estimator.verification.verify import (
     Verdict,
     VerificationConfig,
     alternative_turns,
-    lead_hypothesis,
 )
+from posefuse.estimator.verification.verify import lead_hypothesis as _lead
 
 CONFIG = VerificationConfig()
+
+
+def lead_hypothesis(per_view, R, comp, var, w, config):
+    """The lead with a config's flip settings."""
+    return _lead(
+        per_view,
+        R,
+        comp,
+        var,
+        w,
+        flip_z=config.flip_z,
+        flip_min_views=config.flip_min_views,
+        flip_deg=config.flip_deg,
+    )
+
+
 R_FAV = so3_exp(np.array([0.3, -0.2, 0.1]))
 FLIP = so3_exp(np.array([np.pi, 0.0, 0.0]))  # end over end, about the object's x axis
 NEAR = so3_exp(np.array([0.0, 0.0, np.deg2rad(30.0)]))
