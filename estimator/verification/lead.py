@@ -41,7 +41,7 @@ def lead_hypothesis(
     """
     cost = per_view.mean(axis=1)
     best = int(np.argmin(cost))
-    H, V = per_view.shape
+    V = per_view.shape[1]
     if flip_z is None or V < flip_min_views:
         return best
     favourite = np.flatnonzero(
