@@ -127,7 +127,9 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="train a fixed number of steps on --train-scenes scenes instead of until the "
-        "budget's deadline: the same front end on any machine (--minutes is then unused)",
+        "budget's deadline: the same front end on any machine (--minutes is then unused); "
+        '0: no fine-tune at all, the initial model finds "a part" and the part set\'s '
+        "templates name it (minutes instead of a quarter hour; fewer parts found and named)",
     )
     p.add_argument(
         "--train-scenes",

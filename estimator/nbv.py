@@ -290,9 +290,9 @@ def tracks_for_nbv(estimator, max_components: int = 3) -> list[NbvTrack]:
             )
         )
     for h in estimator.held():
+        if h.obj_id not in estimator.catalog or not np.isfinite(h.box_depth):
+            continue  # "a part" not yet named (a generalist front end's) has no model
         model = estimator.catalog[h.obj_id]
-        if not np.isfinite(h.box_depth):
-            continue
         T_world_cam = invert(h.T_cam_world)
         f = 0.5 * (h.K[0, 0] + h.K[1, 1])
         bbox = f * model.diameter / h.box_depth

@@ -67,7 +67,9 @@ class LabelledNetworkFrontend:
     def _labelled(self, dets, view):
         from posefuse.evaluation.frontend_metrics import match_to_truth
 
-        gts, _, pairs = match_to_truth(dets, view, self.max_px)
+        # a generalist's "a part" lies on a part of any class (the tracker names it later)
+        any_class = bool(getattr(self.network.card, "agnostic", False))
+        gts, _, pairs = match_to_truth(dets, view, self.max_px, any_class=any_class)
         labels = [gts[pairs[i]].gt_idx if i in pairs else -1 for i in range(len(dets))]
         return list(zip(dets, labels, strict=True))
 

@@ -226,10 +226,14 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
     if not paths:
         raise PosefuseError("onboard: give at least one mesh file")
     if config.steps is not None:
-        if config.steps <= 0 or config.train_scenes < 2:
+        if config.steps < 0 or (config.steps > 0 and config.train_scenes < 2):
             raise PosefuseError(
-                f"--steps must be positive and --train-scenes at least 2, got {config.steps} "
-                f"and {config.train_scenes}"
+                f"--steps must be 0 (no fine-tune) or positive with --train-scenes at least 2, "
+                f"got {config.steps} and {config.train_scenes}"
+            )
+        if config.steps == 0 and config.init is None:
+            raise PosefuseError(
+                "--steps 0 uses the initial model as it is: it cannot go with --from-scratch"
             )
     for name, share in (("backgrounds", config.backgrounds), ("composite", config.composite)):
         if not 0.0 <= share <= 1.0:
@@ -275,10 +279,15 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
         "front end",
         "render training scenes, train until the deadline"
         if config.steps is None
+        else 'no fine-tune: the initial model finds "a part", the templates name it'
+        if config.steps == 0
         else f"render {config.train_scenes} training scenes, train {config.steps} steps",
     )
     model_path = out / "model" / "parts.onnx"
-    card = _train(out / "catalog", model_path, catalog, config, rendered, stages)
+    if config.steps == 0:
+        card = write_any_part_model(initial_checkpoint(config), model_path)
+    else:
+        card = _train(out / "catalog", model_path, catalog, config, rendered, stages)
     stages.end("front end")
 
     stages.begin(5, "validation", "the network front end and the estimator on those renders")
@@ -362,6 +371,40 @@ def initial_checkpoint(config) -> str | None:
         if shipped.is_file():
             return str(shipped)
     return None
+
+
+def write_any_part_model(checkpoint: str | None, model_path: Path) -> dict:
+    """The model beside ``checkpoint`` (its ``.onnx``, crop model and card), written to
+    ``model_path`` as a generalist: one class, "a part" (``AGNOSTIC_CLASSES``), wherever any of
+    its class heatmaps peaks; the tracker names each detection from the part set's templates
+    (:mod:`estimator.rotation.naming`). Returns the card written."""
+    import shutil
+
+    from posefuse.estimator.frontend.network import AGNOSTIC_CLASSES
+
+    if checkpoint is None:
+        raise PosefuseError("--steps 0: no initial model to use as it is")
+    source = Path(checkpoint).with_suffix(".onnx")
+    card_path = source.with_suffix(".json")
+    if not source.is_file() or not card_path.is_file():
+        raise PosefuseError(f"--steps 0: {source} and its card {card_path} must both be there")
+    card = json.loads(card_path.read_text())
+    if card.get("kind") != "two_stage":
+        raise PosefuseError(f"--steps 0: {source} is not a two-stage model")
+    model_path.parent.mkdir(parents=True, exist_ok=True)
+    crop_name = f"{model_path.stem}_crop.onnx"
+    shutil.copyfile(source, model_path)
+    shutil.copyfile(source.parent / card["two_stage"]["crop_model"], model_path.parent / crop_name)
+    card["classes"] = [{"obj_id": k, "name": n} for k, n in AGNOSTIC_CLASSES]
+    card["agnostic"] = True
+    card["two_stage"] = {**card["two_stage"], "crop_model": crop_name}
+    card.pop("class_scale_factors", None)
+    card["training"] = {
+        **card.get("training", {}),
+        "onboarding": f'none (--steps 0): {source.name} used as it is, as "a part"',
+    }
+    model_path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
+    return card
 
 
 def _train(

@@ -111,7 +111,9 @@ def validate(
             image = dataset.scene(view.scene_id).load_rgb(view.im_id)
             return network.detect(image)
 
-        score = score_frontend(dataset, detect, list(dataset.views()))
+        # a generalist's detections are "a part", of any class: the tracker names the parts
+        agnostic = network.card.agnostic
+        score = score_frontend(dataset, detect, list(dataset.views()), any_class=agnostic)
         shared = MultiViewEstimator(dataset.catalog)
         shared.prepare_templates(workers=config.workers)
         run = run_dataset(
@@ -146,13 +148,15 @@ def validate(
                 "precision": score.precision,
                 "median_center_error_px": score.median_center_error_px,
                 "instances": score.n_instances,
+                **({"classes": "any: found as a part, named by the tracker"} if agnostic else {}),
             },
             "views_accuracy": accuracy,
         }
         acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
         echo(
             f"  {profile} ({n_scenes} scenes, {scored[str(config.held_views)]} parts scored at "
-            f"{config.held_views} views): front end recall {score.recall:.3f}, precision "
+            f"{config.held_views} views): front end{' (a part, of any class)' if agnostic else ''}"
+            f" recall {score.recall:.3f}, precision "
             f"{score.precision:.3f}; {acc}"
         )
     return figures

@@ -7,6 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 
 MASK_KINDS = ("silhouette", "box")  # what a Detection's mask outlines
+# the obj_id of "a part" of no particular class: a generalist front end's detections, named by
+# the tracker from the catalog's templates (estimator.rotation.naming)
+ANY_PART = 0
 
 
 @dataclass(frozen=True, eq=False)

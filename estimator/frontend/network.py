@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from posefuse.estimator.core.errors import PosefuseError
-from posefuse.estimator.frontend.detection import Detection, ExpectedPart
+from posefuse.estimator.frontend.detection import ANY_PART, Detection, ExpectedPart
 from posefuse.estimator.frontend.two_stage import (
     Box,
     CropVote,
@@ -61,7 +61,7 @@ class UnsupportedImage(PosefuseError, ValueError):
 
 
 # the one class of a generalist model: its detections are "a part" of no catalog (obj_id 0)
-AGNOSTIC_CLASSES = ((0, "part"),)
+AGNOSTIC_CLASSES = ((ANY_PART, "part"),)
 
 
 def catalog_hash(catalog) -> str:
@@ -319,6 +319,10 @@ class NetworkFrontend:
                 raise ModelError(crop_path, "the crop model of this two-stage card is missing")
             self.crop_session = _session(ort, crop_path, options)
         self.input_name = self.session.get_inputs()[0].name
+        # the obj_id of each stage-one class index: a generalist's one class is "a part"
+        self._obj_ids = (
+            [AGNOSTIC_CLASSES[0][0]] if self.card.agnostic else [k for k, _ in self.card.classes]
+        )
         base = voting or VotingConfig()
         self.voting = dataclasses.replace(base, cov_scale=self.card.cov_scale)
         self.seed = seed
@@ -352,7 +356,12 @@ class NetworkFrontend:
         (its input resized by ``factor`` x the card's scale: see ``class_scale_factors``)."""
         self.check_image(image)
         x = preprocess(image, self.card, factor)
-        return self.session.run(None, {self.input_name: x})[0][0]
+        out = self.session.run(None, {self.input_name: x})[0][0]
+        if self.crop_session is not None and self.card.agnostic and out.shape[0] - 4 > 1:
+            # a catalog model used as "a part" (``posefuse onboard --steps 0``): a part is
+            # wherever any of its class heatmaps peaks; the box size and offset are shared
+            out = np.concatenate([out[:-4].max(0, keepdims=True), out[-4:]])
+        return out
 
     def detect(self, image: np.ndarray, frame_seed: int | None = None) -> list[Detection]:
         """Detections in one image (RGB uint8), in a fixed order (class, then votes).
@@ -452,7 +461,7 @@ class NetworkFrontend:
             again = self.stage_two_votes(image, boxes, rng)
             votes = [a if a is not None else v for a, (_, v) in zip(again, kept, strict=True)]
         # masks only for the last pass's votes (drawing them was a third of stage two's time)
-        obj_ids = [k for k, _ in self.card.classes]
+        obj_ids = self._obj_ids
         dets = [
             detection_of(v, image.shape[:2], obj_ids[b.class_index])
             for b, v in zip(boxes, votes, strict=True)
@@ -485,7 +494,10 @@ class NetworkFrontend:
         if self.crop_session is None or not expected:
             return []
         config = self.two_stage
-        index = {k: i for i, (k, _) in enumerate(self.card.classes)}
+        if self.card.agnostic:  # stage two is of any class: the track's class is the crop's
+            index = {e.obj_id: 0 for e in expected}
+        else:
+            index = {k: i for i, (k, _) in enumerate(self.card.classes)}
         wanted = [e for e in expected if e.obj_id in index]
         boxes = [
             Box(index[e.obj_id], np.asarray(e.center_uv, float), np.full(2, e.side_px), hint_score)
@@ -553,7 +565,7 @@ class NetworkFrontend:
     def stage_two(self, image: np.ndarray, boxes: list[Box], rng) -> list[Detection | None]:
         """Stage two of a two-stage model, one pass: one detection (or None) per box, before
         the refinement pass, the spread filter and duplicate suppression."""
-        obj_ids = [k for k, _ in self.card.classes]
+        obj_ids = self._obj_ids
         return [
             None if v is None else detection_of(v, image.shape[:2], obj_ids[box.class_index])
             for box, v in zip(boxes, self.stage_two_votes(image, boxes, rng), strict=True)

@@ -27,15 +27,16 @@ sequence of updates gives the same estimates.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog
-from posefuse.estimator.frontend.detection import Detection, ExpectedPart
+from posefuse.estimator.frontend.detection import ANY_PART, Detection, ExpectedPart
 from posefuse.estimator.rotation.matching import RotationMatcher
+from posefuse.estimator.rotation.naming import class_similarities, name_part
 from posefuse.estimator.rotation.templates import TemplateBank
 from posefuse.estimator.tracker import snapshot
 from posefuse.estimator.tracker.config import TrackerConfig
@@ -48,8 +49,8 @@ from posefuse.estimator.tracker.tracks import (
     TrackBook,
     ViewRef,
 )
-from posefuse.estimator.translation.association import assign, cost_matrix
-from posefuse.estimator.translation.founding import HeldDetection, choose_pairs
+from posefuse.estimator.translation.association import GATED, assign, cost_matrix
+from posefuse.estimator.translation.founding import FoundingPair, HeldDetection, choose_pairs
 from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
@@ -177,8 +178,11 @@ class MultiViewEstimator:
     def update(self, frame: Frame, detections: list[Detection]) -> list[ObjectEstimate]:
         """Fuse one view. Returns the estimates of the tracks this view matched or started."""
         T_world_cam = validate_pose(frame.T_world_cam)
+        detections = self.name_parts(frame, detections)
         view, skipped = self._view_detections(frame, invert(T_world_cam), detections)
         changes = _Changes()
+        if frame.image is not None:  # before the founding, which may name a part by it
+            self.poses.keep_image(view.stamp_ns, frame.image)
         for obj_id in sorted({detections[j].obj_id for j in view.usable} | self.book.classes()):
             self._associate_class(view, obj_id, changes)
 
@@ -189,7 +193,6 @@ class MultiViewEstimator:
         touched = [k for k in dict.fromkeys(touched) if k not in absorbed]
 
         if frame.image is not None:
-            self.poses.keep_image(view.stamp_ns, frame.image)
             for j, oid in changes.assigned:
                 if oid in self.tracks:
                     track = self.tracks[oid]
@@ -218,6 +221,66 @@ class MultiViewEstimator:
         )
         self.last_stamp_ns = view.stamp_ns
         return [self._estimate(self.tracks[k], view.stamp_ns) for k in touched if k in self.tracks]
+
+    def name_parts(self, frame: Frame, detections: list[Detection]) -> list[Detection]:
+        """The detections of "a part" (obj_id ``ANY_PART``, a generalist front end's) that can
+        be named now, named; the others as they are.
+
+        With one part in the catalog every one is that part. Otherwise a detection whose centre
+        falls within the association gate of a live track's prediction takes the class of the
+        nearest such track; the rest stay "a part", are held, and name the track they found
+        (:meth:`_name_pair`). A catalog that has a part of obj_id ``ANY_PART`` names none. The
+        frame's pose must be valid (:meth:`update` checks it first)."""
+        todo = [j for j, d in enumerate(detections) if d.obj_id == ANY_PART]
+        if not todo or ANY_PART in self.catalog:
+            return detections
+        classes = sorted(self.catalog)
+        named = list(detections)
+        if len(classes) == 1:
+            for j in todo:
+                named[j] = replace(detections[j], obj_id=classes[0])
+            return named
+        cam = frame.camera
+        todo = [j for j in todo if cam.contains(detections[j].center_uv[None])[0]]
+        tracks = list(self.tracks.values())
+        if not todo or not tracks:
+            return detections
+        centers = np.array([cam.undistort_points(detections[j].center_uv) for j in todo])
+        cost = cost_matrix(
+            [t.view() for t in tracks],
+            invert(validate_pose(frame.T_world_cam)),
+            cam.K,
+            centers.reshape(-1, 2),
+            np.array([detections[j].center_cov for j in todo]).reshape(-1, 2, 2),
+            self.config.association,
+        )
+        for jj, j in enumerate(todo):
+            if cost[:, jj].min() < GATED:
+                named[j] = replace(detections[j], obj_id=tracks[int(np.argmin(cost[:, jj]))].obj_id)
+        return named
+
+    def _name_pair(self, pair: FoundingPair) -> FoundingPair | None:
+        """A founding pair of "a part" named (:mod:`estimator.rotation.naming`): each class's
+        templates scored in both views (those whose image is kept) at the triangulated
+        translation; the pair's detections then of the named class, their box depths those of
+        its size. None when neither view's image is kept (nothing to name it by)."""
+        matchers = {c: self.matcher(c) for c in sorted(self.catalog)}
+        per_view = []
+        for h in (pair.older, pair.newer):
+            image = self.poses.images.get(h.stamp_ns)
+            t_cam_obj = h.T_cam_world[:3, :3] @ pair.prior_mean + h.T_cam_world[:3, 3]
+            if image is None or not t_cam_obj[2] > MIN_DEPTH:
+                continue
+            per_view.append(class_similarities(image, h.K, t_cam_obj, h.mask, matchers))
+        if not per_view:
+            return None
+        obj_id = name_part(per_view).obj_id
+        scale = self._size(obj_id) / self._any_part_size()
+        older, newer = (
+            replace(h, obj_id=obj_id, box_depth=h.box_depth * scale)
+            for h in (pair.older, pair.newer)
+        )
+        return replace(pair, older=older, newer=newer)
 
     def checks_due(self) -> list[str]:
         """With ``deferred_verification``: the tracks waiting for their verification, the
@@ -374,8 +437,11 @@ class MultiViewEstimator:
         usable: list[int] = []
         centers = np.zeros((len(detections), 2))
         for j, det in enumerate(detections):
-            if det.obj_id not in self.catalog:
-                skipped.append((j, f"unknown class {det.obj_id}"))
+            if det.obj_id not in self.catalog and not (
+                det.obj_id == ANY_PART and frame.image is not None
+            ):
+                why = "a part with no image to name it by" if det.obj_id == ANY_PART else ""
+                skipped.append((j, why or f"unknown class {det.obj_id}"))
                 continue
             if not cam.contains(det.center_uv[None])[0]:
                 skipped.append((j, "center outside the image"))
@@ -452,8 +518,13 @@ class MultiViewEstimator:
             )
         pool = self.book.held.get(obj_id, [])
         pairs = choose_pairs(pool, new, self.config.founding)
+        named = pairs
+        if obj_id == ANY_PART and ANY_PART not in self.catalog:  # "a part": named as founded
+            both = [(p, self._name_pair(p)) for p in pairs]
+            pairs = [p for p, q in both if q is not None]
+            named = [q for _, q in both if q is not None]
         paired = {id(p.older) for p in pairs} | {id(p.newer) for p in pairs}
-        for pair in pairs:
+        for pair in named:
             track = self.book.found_track(pair)
             changes.started.append((pair.newer.index, track.object_id))
             changes.touched.append(track.object_id)
@@ -477,10 +548,21 @@ class MultiViewEstimator:
         )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
-        """The depth at which the part's expected box matches the detection's (SSD-6D)."""
+        """The depth at which the part's expected box matches the detection's (SSD-6D); for
+        "a part", that of a part of the catalog's typical size (:meth:`_any_part_size`)."""
         f = 0.5 * (K[0, 0] + K[1, 1])
-        size = self._size_ratio(det.obj_id) * self.catalog[det.obj_id].diameter
+        size = self._any_part_size() if det.obj_id == ANY_PART else self._size(det.obj_id)
         return f * size / det.bbox_diagonal
+
+    def _size(self, obj_id: int) -> float:
+        """A class's expected box diagonal at 1 m, metres."""
+        return self._size_ratio(obj_id) * self.catalog[obj_id].diameter
+
+    def _any_part_size(self) -> float:
+        """The geometric mean of the catalog's :meth:`_size`: the box depth of "a part" is
+        within the founding's loose box check of its class's for parts up to 2.5 times apart
+        in size (checked against the named class's when the track is founded)."""
+        return float(np.exp(np.mean([np.log(self._size(c)) for c in self.catalog])))
 
     def _size_ratio(self, obj_id: int) -> float:
         if obj_id not in self._size_ratios:

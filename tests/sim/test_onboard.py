@@ -285,3 +285,44 @@ def test_parts_much_larger_than_the_shipped_models_are_found_at_half_the_scale()
     }
     assert class_scale_factors(grown, init) == (1.0, 0.5, 1.0, 1.0, 0.5)
     assert class_scale_factors(grown, None) == ()
+
+
+def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, monkeypatch):
+    """``--steps 0``: no training scene rendered, no step taken; the part set's model is the
+    shipped one as "a part", its validation scores the detections as parts of any class, and
+    the estimator names them. The zigzag is one of the shipped model's own parts, so it must
+    be found; with one part every detection is named it, and posed."""
+    from posefuse.estimator.frontend.detection import ANY_PART
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "parts"
+    argv = ["onboard", str(_zigzag(tmp_path)), "--out", str(out), "--steps", "0"]
+    argv += ["--held-scenes", "1", "--held-views", "4"]
+    code, text = _run(argv, capsys)
+    assert code == 0, text
+    assert "no fine-tune" in text and not (tmp_path / "cache" / "posefuse" / "train").exists()
+    manifest = json.loads((out / "parts.json").read_text())
+    assert manifest["training_steps"] == 0
+    card = json.loads((out / "model" / "parts.json").read_text())
+    assert card["agnostic"] is True and card["classes"] == [{"obj_id": ANY_PART, "name": "part"}]
+    assert (out / "model" / card["two_stage"]["crop_model"]).is_file()
+    for profile in ("mixed", "robi"):
+        figures = manifest["validation"][profile]
+        assert figures["frontend"]["classes"].startswith("any"), figures
+        assert figures["frontend"]["recall"] >= 0.5, figures
+        # one part: every part found is named it, so found parts are posed
+        assert figures["views_accuracy"]["4"]["add_sym"] > 0, figures
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--steps", "-1"], "--steps must be 0 (no fine-tune) or positive"),
+        (["--steps", "0", "--from-scratch"], "cannot go with --from-scratch"),
+    ],
+)
+def test_impossible_step_counts_are_refused_before_any_work(tmp_path, capsys, extra, message):
+    out = tmp_path / "out"
+    code, text = _run(["onboard", str(_zigzag(tmp_path)), "--out", str(out), *extra], capsys)
+    assert code == 2 and message in text, text
+    assert not out.exists()

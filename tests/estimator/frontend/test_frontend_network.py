@@ -436,3 +436,48 @@ def test_each_class_is_found_at_its_own_scale(full_res_dataset, robi_catalog, tm
 def test_a_card_with_wrong_scale_factors_is_refused(robi_catalog, tmp_path, factors, message):
     with pytest.raises(ModelError, match=re.escape(message)):
         NetworkFrontend(_model_copy(tmp_path, class_scale_factors=factors), robi_catalog)
+
+
+def test_a_catalog_model_used_as_a_part_finds_each_part_once_as_obj_id_0(
+    full_res_dataset, robi_catalog, tmp_path
+):
+    """``posefuse onboard --steps 0``'s model: the shipped model's card made a generalist's.
+    Its detections are all "a part" (obj_id ``ANY_PART``), one per part however many class
+    heatmaps peak on it, and every part the classes find is found as "a part" too (stage one
+    takes the maximum over the heatmaps, so no peak is lost)."""
+    from posefuse.estimator.frontend.detection import ANY_PART
+    from posefuse.sim.onboard import write_any_part_model
+
+    card = write_any_part_model(str(Path(DEFAULT_MODEL).with_suffix(".ckpt")), tmp_path / "p.onnx")
+    assert card["agnostic"] is True and card["classes"] == [{"obj_id": ANY_PART, "name": "part"}]
+    any_part = NetworkFrontend(tmp_path / "p.onnx", robi_catalog)  # any catalog: not refused
+    shipped = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    dataset = load_dataset(full_res_dataset)
+    n_shipped = matched = 0
+    for view in list(dataset.views())[:3]:
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        got = any_part.detect(image)
+        _well_formed(got, image.shape[:2], {ANY_PART: None})
+        assert got and all(d.obj_id == ANY_PART for d in got)
+        want = shipped.detect(image)
+        n_shipped += len(want)
+        matched += sum(
+            any(np.linalg.norm(g.center_uv - w.center_uv) <= 3.0 for g in got) for w in want
+        )
+        # no part twice: two detections never lie closer than the duplicate suppression allows
+        for i, a in enumerate(got):
+            for b in got[i + 1 :]:
+                side = min(a.bbox_xywh[2:].max(), b.bbox_xywh[2:].max())
+                assert np.linalg.norm(a.center_uv - b.center_uv) >= 0.3 * side
+    assert n_shipped >= 10 and matched >= 0.9 * n_shipped, (matched, n_shipped)
+
+
+def test_an_any_part_model_needs_a_two_stage_model_with_its_card(tmp_path):
+    from posefuse.estimator.core.errors import PosefuseError
+    from posefuse.sim.onboard import write_any_part_model
+
+    with pytest.raises(PosefuseError, match="must both be there"):
+        write_any_part_model(str(tmp_path / "none.ckpt"), tmp_path / "p.onnx")
+    copy = _model_copy(tmp_path / "one", kind="center_voting")
+    with pytest.raises(PosefuseError, match="not a two-stage model"):
+        write_any_part_model(str(copy.with_suffix(".ckpt")), tmp_path / "p.onnx")
