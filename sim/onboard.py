@@ -235,6 +235,20 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
             raise PosefuseError(
                 "--steps 0 uses the initial model as it is: it cannot go with --from-scratch"
             )
+        training_only = {
+            "--photometric": config.photometric,
+            "--backgrounds": config.backgrounds > 0,
+            "--composite": config.composite > 0,
+            "--frozen-backbones": config.frozen_backbones,
+            "--scale-by-size": config.scale_by_size,
+            "--class-balanced": config.class_balanced,
+        }
+        given = [flag for flag, on in training_only.items() if on]
+        if config.steps == 0 and given:
+            raise PosefuseError(
+                f"--steps 0 trains nothing, so {', '.join(given)} would do nothing; drop "
+                f"{'it' if len(given) == 1 else 'them'} or give --steps N or --minutes M"
+            )
     for name, share in (("backgrounds", config.backgrounds), ("composite", config.composite)):
         if not 0.0 <= share <= 1.0:
             raise PosefuseError(f"--{name} must be in [0, 1], got {share}")

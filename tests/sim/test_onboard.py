@@ -319,6 +319,7 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     [
         (["--steps", "-1"], "--steps must be 0 (no fine-tune) or positive"),
         (["--steps", "0", "--from-scratch"], "cannot go with --from-scratch"),
+        (["--steps", "0", "--photometric", "--composite", "0.5"], "--photometric, --composite"),
     ],
 )
 def test_impossible_step_counts_are_refused_before_any_work(tmp_path, capsys, extra, message):
