@@ -326,6 +326,13 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     for scene_id in scene_ids or ():
         dataset.scene(scene_id)  # a DatasetError naming the missing scene
     frontend = make_frontend(dataset, args.frontend, oracle, args.model, args.seed)
+    if not rotation and args.frontend == "network" and len(dataset.catalog) > 1:
+        if frontend.network.card.agnostic:
+            raise PosefuseError(
+                f'--translation-only: {args.model} finds "a part" and the estimator names '
+                "each from its images, which a translation-only run does not pass it; drop "
+                "--translation-only"
+            )
     out = Path(args.out)
     report = run_and_write(
         dataset,

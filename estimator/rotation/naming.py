@@ -11,9 +11,9 @@ scored there; the part whose best template stands most above the rest of its tem
 
 At the triangulated depth the crop shows the part at its true size, where one view's box
 depth would make every part the box's size and leave shape alone. Named so, the tracks of the
-five real meshes of the evaluation were of the right part 73% of the time in bins and 68% in
+five real meshes of the evaluation were of the right part 69% of the time in bins and 84% in
 piles (docs/own-parts.md); the gear is still named the eye bolt, whose ring it resembles, in
-11 of its 15 tracks. Scored one view at a time at the box depth, the detections were named
+12 of its 16 tracks. Scored one view at a time at the box depth, the detections were named
 right 68% of the time (docs/lab/2026-12-06-generalist-large-parts-and-template-class.md).
 """
 
@@ -49,7 +49,6 @@ def class_similarities(
     t_cam_obj: np.ndarray,
     mask: np.ndarray | None,
     matchers: dict[int, RotationMatcher],
-    dilation_px: int = 3,
 ) -> dict[int, float]:
     """Per part, how far its best template's similarity stands above the mean of its bank's
     at a translation (in [0, 1]).
@@ -58,19 +57,22 @@ def class_similarities(
     tee fittings, the screw's thread-like edges named 31 of 103 tracks the screw. Less the
     bank's mean at the same RoI, 68% of the tracks in piles and 73% in bins were named right,
     against 58% and 73% (onboarding's validation renders of the five real meshes, their tuning
-    sets: docs/own-parts.md). Dividing by the bank's spread as well named almost all wrong.
+    sets, before the tracker's other naming rules: docs/own-parts.md). Dividing by the bank's
+    spread as well named almost all wrong.
 
     Args:
         image: (H, W, 3) uint8 RGB. K: (3, 3). t_cam_obj: (3,) metres, z > 0.
         mask: (H, W) bool, the detection's mask, or None.
-        matchers: obj_id -> the part's rotation matcher (its template bank).
+        matchers: obj_id -> the part's rotation matcher (its template bank; anything with
+            ``bank``, ``config.mask_dilation_px`` and ``scores(roi, roi_mask)``).
     """
     if not t_cam_obj[2] > 0:
         raise ValueError(f"class_similarities: the part must lie in front, got z {t_cam_obj[2]}")
     out = {}
     for obj_id in sorted(matchers):
         matcher = matchers[obj_id]
-        roi, roi_mask = crop_roi(image, K, t_cam_obj, matcher.bank, mask, dilation_px)
+        dilation = matcher.config.mask_dilation_px
+        roi, roi_mask = crop_roi(image, K, t_cam_obj, matcher.bank, mask, dilation)
         scores = matcher.scores(roi, roi_mask)
         out[obj_id] = float(scores.max() - scores.mean())
     return out

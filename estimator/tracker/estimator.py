@@ -3,6 +3,9 @@
 One call of :meth:`MultiViewEstimator.update` per view, in stamp order. It validates the frame
 (nothing in the state changes if the frame is bad), then walks the method's steps:
 
+0. detections of "a part" (a generalist front end's, obj_id ``ANY_PART``) named where they
+   can be (:meth:`MultiViewEstimator.name_parts`); the rest are held as "a part", and a track
+   they found is named by the parts' templates (:mod:`estimator.rotation.naming`);
 1. association, class by class, of the view's detections with the tracks
    (:mod:`estimator.translation.association`), each matched track's translation estimated again
    from all its views (:mod:`estimator.translation.gaussian`); unmatched detections are held
@@ -17,6 +20,8 @@ One call of :meth:`MultiViewEstimator.update` per view, in stamp order. It valid
 Documented skips (counted in ``skipped`` of the last update, never an exception):
 
 - a detection of a class the catalog does not have;
+- a detection of "a part" in a frame without an image, when no track names it (the templates
+  need the pixels);
 - a detection whose center lies outside the image;
 - an unmatched detection whose box touches the image border does not start a track: the box of
   a truncated part says nothing reliable about its depth. It may still update a track.
@@ -49,8 +54,13 @@ from posefuse.estimator.tracker.tracks import (
     TrackBook,
     ViewRef,
 )
-from posefuse.estimator.translation.association import GATED, assign, cost_matrix
-from posefuse.estimator.translation.founding import FoundingPair, HeldDetection, choose_pairs
+from posefuse.estimator.translation.association import assign, cost_matrix
+from posefuse.estimator.translation.founding import (
+    FoundingPair,
+    HeldDetection,
+    choose_pairs,
+    triangulate_pair,
+)
 from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
@@ -183,7 +193,10 @@ class MultiViewEstimator:
         changes = _Changes()
         if frame.image is not None:  # before the founding, which may name a part by it
             self.poses.keep_image(view.stamp_ns, frame.image)
-        for obj_id in sorted({detections[j].obj_id for j in view.usable} | self.book.classes()):
+        walked = {detections[j].obj_id for j in view.usable} | self.book.classes()
+        if self.book.held.get(ANY_PART):  # "a part" held: aged, and paired, every view
+            walked.add(ANY_PART)
+        for obj_id in sorted(walked):
             self._associate_class(view, obj_id, changes)
 
         split = self.book.split_tracks(sorted(set(changes.touched)))
@@ -227,8 +240,9 @@ class MultiViewEstimator:
         be named now, named; the others as they are.
 
         With one part in the catalog every one is that part. Otherwise a detection whose centre
-        falls within the association gate of a live track's prediction takes the class of the
-        nearest such track; the rest stay "a part", are held, and name the track they found
+        falls within the association gate of a live track's prediction takes its class (one
+        detection a track, by the association's minimum-cost assignment over every class's
+        tracks); the rest stay "a part", are held, and name the track they found
         (:meth:`_name_pair`). A catalog that has a part of obj_id ``ANY_PART`` names none. The
         frame's pose must be valid (:meth:`update` checks it first)."""
         todo = [j for j, d in enumerate(detections) if d.obj_id == ANY_PART]
@@ -254,16 +268,16 @@ class MultiViewEstimator:
             np.array([detections[j].center_cov for j in todo]).reshape(-1, 2, 2),
             self.config.association,
         )
-        for jj, j in enumerate(todo):
-            if cost[:, jj].min() < GATED:
-                named[j] = replace(detections[j], obj_id=tracks[int(np.argmin(cost[:, jj]))].obj_id)
+        for i, jj in assign(cost):  # one detection a track, as the association will take them
+            named[todo[jj]] = replace(detections[todo[jj]], obj_id=tracks[i].obj_id)
         return named
 
     def _name_pair(self, pair: FoundingPair) -> FoundingPair | None:
         """A founding pair of "a part" named (:mod:`estimator.rotation.naming`): each class's
-        templates scored in both views (those whose image is kept) at the triangulated
-        translation; the pair's detections then of the named class, their box depths those of
-        its size. None when neither view's image is kept (nothing to name it by)."""
+        templates scored in both views (those whose image is kept) at the pair's translation;
+        the pair's detections then of the named class, their box depths those of its size, and
+        the pair founded again as that class's (:func:`triangulate_pair`). None when neither
+        view's image is kept (nothing to name it by) or the named class's pair is gated out."""
         matchers = {c: self.matcher(c) for c in sorted(self.catalog)}
         per_view = []
         for h in (pair.older, pair.newer):
@@ -280,7 +294,9 @@ class MultiViewEstimator:
             replace(h, obj_id=obj_id, box_depth=h.box_depth * scale)
             for h in (pair.older, pair.newer)
         )
-        return replace(pair, older=older, newer=newer)
+        # the pair again as the named class's: its boxes checked against its size, and a
+        # pair of a camera that did not move placed at its box depth
+        return triangulate_pair(older, newer, self.config.founding)
 
     def checks_due(self) -> list[str]:
         """With ``deferred_verification``: the tracks waiting for their verification, the
@@ -354,7 +370,8 @@ class MultiViewEstimator:
             if f * np.sqrt(np.trace(track.estimate.cov)) / p[2] > max_std_frac * side:
                 continue
             if any(
-                d.obj_id == track.obj_id and np.linalg.norm(d.center_uv - uv) < covered_frac * side
+                d.obj_id in (track.obj_id, ANY_PART)
+                and np.linalg.norm(d.center_uv - uv) < covered_frac * side
                 for d in detections
             ):
                 continue
@@ -517,9 +534,15 @@ class MultiViewEstimator:
                 )
             )
         pool = self.book.held.get(obj_id, [])
-        pairs = choose_pairs(pool, new, self.config.founding)
+        founding = self.config.founding
+        unnamed = obj_id == ANY_PART and ANY_PART not in self.catalog
+        if unnamed:  # the box of "a part" bounds its depth only as loosely as the sizes differ
+            founding = replace(
+                founding, box_depth_factor=founding.box_depth_factor * self._spread()
+            )
+        pairs = choose_pairs(pool, new, founding)
         named = pairs
-        if obj_id == ANY_PART and ANY_PART not in self.catalog:  # "a part": named as founded
+        if unnamed:  # "a part": named as founded
             both = [(p, self._name_pair(p)) for p in pairs]
             pairs = [p for p, q in both if q is not None]
             named = [q for _, q in both if q is not None]
@@ -559,10 +582,16 @@ class MultiViewEstimator:
         return self._size_ratio(obj_id) * self.catalog[obj_id].diameter
 
     def _any_part_size(self) -> float:
-        """The geometric mean of the catalog's :meth:`_size`: the box depth of "a part" is
-        within the founding's loose box check of its class's for parts up to 2.5 times apart
-        in size (checked against the named class's when the track is founded)."""
+        """The geometric mean of the catalog's :meth:`_size`, the size the box depth of "a
+        part" is taken at (its pairs' box check widened by :meth:`_spread`, and made again at
+        the named class's size when its track is founded)."""
         return float(np.exp(np.mean([np.log(self._size(c)) for c in self.catalog])))
+
+    def _spread(self) -> float:
+        """How many times any catalog part's size may lie from :meth:`_any_part_size`."""
+        sizes = [self._size(c) for c in self.catalog]
+        mean = self._any_part_size()
+        return max(max(sizes) / mean, mean / min(sizes))
 
     def _size_ratio(self, obj_id: int) -> float:
         if obj_id not in self._size_ratios:

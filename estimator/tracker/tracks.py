@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from posefuse.estimator.core.objects import Catalog
+from posefuse.estimator.frontend.detection import ANY_PART
 from posefuse.estimator.rotation.mixture import RotationMixture
 from posefuse.estimator.tracker.config import TrackerConfig
 from posefuse.estimator.translation.association import TrackView, innovation_cost
@@ -387,7 +388,12 @@ class TrackBook:
                 raise KeyError(object_id)
             del self.tracks[object_id]
             return 1
-        self.held = {k: v for k, v in self.held.items() if class_id is not None and k != class_id}
+        # "a part" not yet named may be of the class: it goes with any class
+        self.held = {
+            k: v
+            for k, v in self.held.items()
+            if class_id is not None and k not in (class_id, ANY_PART)
+        }
         keys = [k for k, t in self.tracks.items() if class_id is None or t.obj_id == class_id]
         for k in keys:
             del self.tracks[k]

@@ -110,7 +110,7 @@ def test_the_templates_name_a_part_at_its_true_translation(robi_catalog, default
             assert all(0.0 <= v <= 1.0 for v in similar.values())
             right += name_part([similar]).obj_id == k
             total += 1
-    assert right >= 0.6 * total, f"{right} of {total} named right"
+    assert right >= 0.8 * total, f"{right} of {total} named right"
 
 
 def test_a_generalists_parts_are_founded_and_named_from_two_views(robi_catalog, default_banks):
@@ -143,3 +143,34 @@ def test_a_generalists_parts_are_founded_and_named_from_two_views(robi_catalog, 
     for track in tracks:
         nearest = min(world, key=lambda k: np.linalg.norm(world[k] - track.estimate.t_world_obj))
         assert track.obj_id == nearest
+
+
+def test_a_part_on_a_track_is_no_part_expected_and_a_class_reset_forgets_parts_held(
+    robi_catalog,
+):
+    """A track's part found as "a part" covers it: no crop is asked there. "A part" held
+    waiting for a partner may be of any class, so resetting one class forgets it too; the
+    state with it held exports and imports."""
+    seq = make_sequence(robi_catalog, 2026, SceneSpec(n_views=5))
+    est = MultiViewEstimator(robi_catalog)
+    for view in seq.views[:4]:
+        est.update(view.frame, view.detections)
+    last = seq.views[4]
+    cam, T = last.frame.camera, last.frame.T_world_cam
+    expected = est.expected_parts(cam, T, [])
+    assert len(expected) >= 3
+    as_parts = _as_any_part(last.detections)
+    still = {e.object_id for e in est.expected_parts(cam, T, as_parts)}
+    labelled = {e.object_id for e in est.expected_parts(cam, T, last.detections)}
+    assert len(still) < len(expected) and still <= labelled, (still, labelled)
+    # a part no track explains, in a frame with an image: held as "a part"
+    far = dataclasses.replace(as_parts[0], center_uv=np.array([30.0, 30.0]))
+    image = np.zeros((cam.height, cam.width, 3), np.uint8)
+    est.update(Frame(last.frame.stamp_ns, cam, T, image), [far])
+    assert [h.obj_id for h in est.held()].count(ANY_PART) == 1
+    state = est.export_state()
+    other = MultiViewEstimator(robi_catalog)
+    other.import_state(state)
+    assert [h.obj_id for h in other.held()].count(ANY_PART) == 1
+    other.reset(class_id=sorted(robi_catalog)[0])
+    assert ANY_PART not in [h.obj_id for h in other.held()]
