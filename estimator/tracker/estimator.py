@@ -41,10 +41,10 @@ from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog
 from posefuse.estimator.frontend.detection import ANY_PART, Detection, ExpectedPart
 from posefuse.estimator.rotation.matching import RotationMatcher
-from posefuse.estimator.rotation.naming import class_similarities, name_part
 from posefuse.estimator.rotation.templates import TemplateBank
 from posefuse.estimator.tracker import snapshot
 from posefuse.estimator.tracker.config import TrackerConfig
+from posefuse.estimator.tracker.naming import any_part_size, name_by_tracks, name_pair, size_spread
 from posefuse.estimator.tracker.pose_stage import PoseStage
 from posefuse.estimator.tracker.published import ObjectEstimate, published_estimate
 from posefuse.estimator.tracker.tracks import (
@@ -55,12 +55,7 @@ from posefuse.estimator.tracker.tracks import (
     ViewRef,
 )
 from posefuse.estimator.translation.association import assign, cost_matrix
-from posefuse.estimator.translation.founding import (
-    FoundingPair,
-    HeldDetection,
-    choose_pairs,
-    triangulate_pair,
-)
+from posefuse.estimator.translation.founding import HeldDetection, choose_pairs
 from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
@@ -237,66 +232,21 @@ class MultiViewEstimator:
 
     def name_parts(self, frame: Frame, detections: list[Detection]) -> list[Detection]:
         """The detections of "a part" (obj_id ``ANY_PART``, a generalist front end's) that can
-        be named now, named; the others as they are.
-
-        With one part in the catalog every one is that part. Otherwise a detection whose centre
-        falls within the association gate of a live track's prediction takes its class (one
-        detection a track, by the association's minimum-cost assignment over every class's
-        tracks); the rest stay "a part", are held, and name the track they found
-        (:meth:`_name_pair`). A catalog that has a part of obj_id ``ANY_PART`` names none. The
-        frame's pose must be valid (:meth:`update` checks it first)."""
-        todo = [j for j, d in enumerate(detections) if d.obj_id == ANY_PART]
-        if not todo or ANY_PART in self.catalog:
+        be named now, named (:func:`estimator.tracker.naming.name_by_tracks`); the others as
+        they are. A catalog that has a part of obj_id ``ANY_PART`` names none. The frame's pose
+        must be valid (:meth:`update` checks it first)."""
+        if ANY_PART in self.catalog:
             return detections
-        classes = sorted(self.catalog)
-        named = list(detections)
-        if len(classes) == 1:
-            for j in todo:
-                named[j] = replace(detections[j], obj_id=classes[0])
-            return named
-        cam = frame.camera
-        todo = [j for j in todo if cam.contains(detections[j].center_uv[None])[0]]
+        T_cam_world = invert(validate_pose(frame.T_world_cam))
         tracks = list(self.tracks.values())
-        if not todo or not tracks:
-            return detections
-        centers = np.array([cam.undistort_points(detections[j].center_uv) for j in todo])
-        cost = cost_matrix(
-            [t.view() for t in tracks],
-            invert(validate_pose(frame.T_world_cam)),
-            cam.K,
-            centers.reshape(-1, 2),
-            np.array([detections[j].center_cov for j in todo]).reshape(-1, 2, 2),
+        return name_by_tracks(
+            detections,
+            frame.camera,
+            T_cam_world,
+            tracks,
+            sorted(self.catalog),
             self.config.association,
         )
-        for i, jj in assign(cost):  # one detection a track, as the association will take them
-            named[todo[jj]] = replace(detections[todo[jj]], obj_id=tracks[i].obj_id)
-        return named
-
-    def _name_pair(self, pair: FoundingPair) -> FoundingPair | None:
-        """A founding pair of "a part" named (:mod:`estimator.rotation.naming`): each class's
-        templates scored in both views (those whose image is kept) at the pair's translation;
-        the pair's detections then of the named class, their box depths those of its size, and
-        the pair founded again as that class's (:func:`triangulate_pair`). None when neither
-        view's image is kept (nothing to name it by) or the named class's pair is gated out."""
-        matchers = {c: self.matcher(c) for c in sorted(self.catalog)}
-        per_view = []
-        for h in (pair.older, pair.newer):
-            image = self.poses.images.get(h.stamp_ns)
-            t_cam_obj = h.T_cam_world[:3, :3] @ pair.prior_mean + h.T_cam_world[:3, 3]
-            if image is None or not t_cam_obj[2] > MIN_DEPTH:
-                continue
-            per_view.append(class_similarities(image, h.K, t_cam_obj, h.mask, matchers))
-        if not per_view:
-            return None
-        obj_id = name_part(per_view).obj_id
-        scale = self._size(obj_id) / self._any_part_size()
-        older, newer = (
-            replace(h, obj_id=obj_id, box_depth=h.box_depth * scale)
-            for h in (pair.older, pair.newer)
-        )
-        # the pair again as the named class's: its boxes checked against its size, and a
-        # pair of a camera that did not move placed at its box depth
-        return triangulate_pair(older, newer, self.config.founding)
 
     def checks_due(self) -> list[str]:
         """With ``deferred_verification``: the tracks waiting for their verification, the
@@ -537,13 +487,16 @@ class MultiViewEstimator:
         founding = self.config.founding
         unnamed = obj_id == ANY_PART and ANY_PART not in self.catalog
         if unnamed:  # the box of "a part" bounds its depth only as loosely as the sizes differ
-            founding = replace(
-                founding, box_depth_factor=founding.box_depth_factor * self._spread()
-            )
+            spread = size_spread(self._sizes())
+            founding = replace(founding, box_depth_factor=founding.box_depth_factor * spread)
         pairs = choose_pairs(pool, new, founding)
         named = pairs
-        if unnamed:  # "a part": named as founded
-            both = [(p, self._name_pair(p)) for p in pairs]
+        if unnamed:  # "a part": named as founded (estimator.tracker.naming)
+            matchers = {c: self.matcher(c) for c in sorted(self.catalog)}
+            both = [
+                (p, name_pair(p, self.poses.images, matchers, self._sizes(), self.config.founding))
+                for p in pairs
+            ]
             pairs = [p for p, q in both if q is not None]
             named = [q for _, q in both if q is not None]
         paired = {id(p.older) for p in pairs} | {id(p.newer) for p in pairs}
@@ -572,26 +525,17 @@ class MultiViewEstimator:
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:
         """The depth at which the part's expected box matches the detection's (SSD-6D); for
-        "a part", that of a part of the catalog's typical size (:meth:`_any_part_size`)."""
+        "a part", that of a part of the catalog's typical size (``naming.any_part_size``)."""
         f = 0.5 * (K[0, 0] + K[1, 1])
-        size = self._any_part_size() if det.obj_id == ANY_PART else self._size(det.obj_id)
+        if det.obj_id == ANY_PART:
+            size = any_part_size(self._sizes())
+        else:
+            size = self._size_ratio(det.obj_id) * self.catalog[det.obj_id].diameter
         return f * size / det.bbox_diagonal
 
-    def _size(self, obj_id: int) -> float:
-        """A class's expected box diagonal at 1 m, metres."""
-        return self._size_ratio(obj_id) * self.catalog[obj_id].diameter
-
-    def _any_part_size(self) -> float:
-        """The geometric mean of the catalog's :meth:`_size`, the size the box depth of "a
-        part" is taken at (its pairs' box check widened by :meth:`_spread`, and made again at
-        the named class's size when its track is founded)."""
-        return float(np.exp(np.mean([np.log(self._size(c)) for c in self.catalog])))
-
-    def _spread(self) -> float:
-        """How many times any catalog part's size may lie from :meth:`_any_part_size`."""
-        sizes = [self._size(c) for c in self.catalog]
-        mean = self._any_part_size()
-        return max(max(sizes) / mean, mean / min(sizes))
+    def _sizes(self) -> dict[int, float]:
+        """Per class, its expected box diagonal at 1 m (metres)."""
+        return {c: self._size_ratio(c) * self.catalog[c].diameter for c in sorted(self.catalog)}
 
     def _size_ratio(self, obj_id: int) -> float:
         if obj_id not in self._size_ratios:
