@@ -170,6 +170,7 @@ class MultiViewEstimator:
             catalog, self.config, banks, template_cache_dir, show_progress, matchers
         )
         self._size_ratios: dict[int, float] = {}  # per class, for the box depth
+        self._part_sizes: dict[int, float] | None = None  # per class, for "a part" (_sizes)
         self.last_report = UpdateReport((), (), (), ())
         self.last_stamp_ns: int | None = None
 
@@ -235,8 +236,8 @@ class MultiViewEstimator:
         be named now, named (:func:`estimator.tracker.naming.name_by_tracks`); the others as
         they are. A catalog that has a part of obj_id ``ANY_PART`` names none. The frame's pose
         must be valid (:meth:`update` checks it first)."""
-        if ANY_PART in self.catalog:
-            return detections
+        if ANY_PART in self.catalog or all(d.obj_id != ANY_PART for d in detections):
+            return detections  # nothing to name: no work on a labelled front end's frames
         T_cam_world = invert(validate_pose(frame.T_world_cam))
         tracks = list(self.tracks.values())
         return name_by_tracks(
@@ -534,8 +535,13 @@ class MultiViewEstimator:
         return f * size / det.bbox_diagonal
 
     def _sizes(self) -> dict[int, float]:
-        """Per class, its expected box diagonal at 1 m (metres)."""
-        return {c: self._size_ratio(c) * self.catalog[c].diameter for c in sorted(self.catalog)}
+        """Per class, its expected box diagonal at 1 m (metres); made once (the catalog is
+        fixed)."""
+        if self._part_sizes is None:
+            self._part_sizes = {
+                c: self._size_ratio(c) * self.catalog[c].diameter for c in sorted(self.catalog)
+            }
+        return self._part_sizes
 
     def _size_ratio(self, obj_id: int) -> float:
         if obj_id not in self._size_ratios:
