@@ -512,7 +512,11 @@ class MultiViewEstimator:
                 changes.held.append(h.index)
         # the tracks founded so far in this update, of every class walked yet, may take the
         # class's held detections
-        pool = self.book.absorb_held(pool, [self.tracks[o] for _, o in changes.started])
+        scale = None
+        if unnamed:  # an absorbed "a part" takes the box depth of the part its track is
+            typical = any_part_size(self._sizes())
+            scale = {c: size / typical for c, size in self._sizes().items()}
+        pool = self.book.absorb_held(pool, [self.tracks[o] for _, o in changes.started], scale)
         self.book.keep_held(obj_id, pool)
 
     def _estimate(self, track: Track, stamp: int) -> ObjectEstimate:

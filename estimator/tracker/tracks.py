@@ -188,9 +188,17 @@ class TrackBook:
             track.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask, h.silhouette))
         return track
 
-    def absorb_held(self, pool: list[HeldDetection], tracks: list[Track]) -> list[HeldDetection]:
+    def absorb_held(
+        self,
+        pool: list[HeldDetection],
+        tracks: list[Track],
+        box_depth_scale: dict[int, float] | None = None,
+    ) -> list[HeldDetection]:
         """Held detections of earlier views that a just-founded track explains join it; the
-        others are returned."""
+        others are returned. box_depth_scale: per class, the factor from the box depth of a held
+        "a part" (``ANY_PART``: a typical part's) to that of the joined track's class (the named
+        part's size over the typical part's); None or a class not in it: 1. A labelled held
+        detection keeps its own."""
         gate = self.config.association.gate_chi2
         left = []
         for h in pool:
@@ -204,8 +212,11 @@ class TrackBook:
             if best is None:
                 left.append(h)
                 continue
+            depth = h.box_depth
+            if h.obj_id == ANY_PART:
+                depth *= (box_depth_scale or {}).get(best.obj_id, 1.0)
             self.add_view(
-                best, h.T_cam_world, h.K, h.uv, h.cov, ViewRef(h.stamp_ns, h.index, h.box_depth)
+                best, h.T_cam_world, h.K, h.uv, h.cov, ViewRef(h.stamp_ns, h.index, depth)
             )
             best.pending.append(PendingView(h.stamp_ns, h.T_cam_world, h.K, h.mask, h.silhouette))
         return left

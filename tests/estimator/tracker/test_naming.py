@@ -174,3 +174,49 @@ def test_a_part_on_a_track_is_no_part_expected_and_a_class_reset_forgets_parts_h
     assert [h.obj_id for h in other.held()].count(ANY_PART) == 1
     other.reset(class_id=sorted(robi_catalog)[0])
     assert ANY_PART not in [h.obj_id for h in other.held()]
+
+
+def _held(obj_id, stamp, T_world_cam, point, K, box_depth):
+    """A held detection of ``point`` (3,) world, seen by a camera at T_world_cam (4, 4)."""
+    from posefuse.estimator.core.geometry import invert
+    from posefuse.estimator.translation.founding import HeldDetection
+
+    T_cam_world = invert(T_world_cam)
+    p = T_cam_world[:3, :3] @ point + T_cam_world[:3, 3]
+    uv = (K @ (p / p[2]))[:2]
+    return HeldDetection(obj_id, stamp, 0, T_cam_world, K, uv, np.eye(2), box_depth, 0)
+
+
+def test_a_part_absorbed_by_a_named_track_takes_its_parts_box_depth(robi_catalog):
+    """A held "a part" that joins a track founded in the same view gets the box depth of the
+    track's part (its generic depth times the part's size over the typical part's); a labelled
+    detection, or a class the scale does not name, keeps its own."""
+    from posefuse.estimator.tracker.config import TrackerConfig
+    from posefuse.estimator.tracker.tracks import TrackBook
+    from posefuse.estimator.translation.founding import FoundingConfig, triangulate_pair
+    from posefuse.sim.scenes import look_at
+
+    K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
+    point = np.array([0.01, -0.02, 0.0])
+    cams = [
+        look_at(np.array([x, -0.5, 0.6]), np.zeros(3), np.array([0, 0, 1.0]))
+        for x in (-0.3, 0.0, 0.3, 0.15)
+    ]
+    obj_id = sorted(robi_catalog)[0]
+    book = TrackBook(robi_catalog, TrackerConfig())
+    pair = triangulate_pair(
+        _held(obj_id, 1, cams[0], point, K, 0.8),
+        _held(obj_id, 2, cams[1], point, K, 0.8),
+        FoundingConfig(),
+    )
+    assert pair is not None
+    track = book.found_track(pair)
+    unnamed = _held(ANY_PART, 3, cams[2], point, K, 0.5)
+    labelled = _held(obj_id, 4, cams[3], point, K, 0.6)
+    left = book.absorb_held([unnamed, labelled], [track], {obj_id: 1.6})
+    assert left == []
+    assert [r.box_depth for r in track.refs[-2:]] == pytest.approx([0.5 * 1.6, 0.6])
+    other = TrackBook(robi_catalog, TrackerConfig())
+    again = other.found_track(pair)
+    other.absorb_held([unnamed], [again], {obj_id + 100: 1.6})
+    assert again.refs[-1].box_depth == pytest.approx(0.5)
