@@ -71,7 +71,12 @@ def class_similarities(
     out = {}
     for obj_id in sorted(matchers):
         matcher = matchers[obj_id]
-        dilation = matcher.config.mask_dilation_px
+        dilation = getattr(getattr(matcher, "config", None), "mask_dilation_px", None)
+        if dilation is None or not callable(getattr(matcher, "scores", None)):
+            raise TypeError(
+                f"class_similarities: the matcher of obj_id {obj_id} ({type(matcher).__name__}) "
+                "cannot name a part: it needs scores(roi, roi_mask) and config.mask_dilation_px"
+            )
         roi, roi_mask = crop_roi(image, K, t_cam_obj, matcher.bank, mask, dilation)
         scores = matcher.scores(roi, roi_mask)
         out[obj_id] = float(scores.max() - scores.mean())

@@ -162,7 +162,9 @@ class MultiViewEstimator:
         """banks: template banks per obj_id (built, or loaded from the cache, when missing).
         matchers: rotation matchers per obj_id replacing the default RotationMatcher of the
         bank (anything with ``.bank`` and ``measure(image, K, t_cam_obj, mask)`` giving
-        RotationMeasurements; the benchmarks use it for the multi-scale ablation)."""
+        RotationMeasurements; the benchmarks use it for the multi-scale ablation; to name a
+        generalist's "a part", also ``scores(roi, roi_mask)`` and ``config.mask_dilation_px``,
+        else that naming raises a TypeError naming the part)."""
         self.catalog = catalog
         self.config = config or TrackerConfig()
         self.book = TrackBook(catalog, self.config)

@@ -72,6 +72,26 @@ def test_name_part_sums_the_views_and_refuses_nothing_to_name_by():
         class_similarities(np.zeros((8, 8, 3), np.uint8), CAM.K, np.zeros(3), None, {})
 
 
+def test_a_matcher_that_cannot_score_a_bank_is_named_in_the_error(default_banks):
+    """A custom matcher (``MultiViewEstimator(matchers=...)``) with only ``bank`` and
+    ``measure`` cannot name "a part": one clear error naming its part, not an AttributeError."""
+
+    class MeasureOnly:
+        def __init__(self, bank):
+            self.bank = bank
+
+        def measure(self, image, K, t_cam_obj, mask):
+            return []
+
+    obj_id = sorted(default_banks)[0]
+    image = np.zeros((CAM.height, CAM.width, 3), np.uint8)
+    t = np.array([0.0, 0.0, 0.5])
+    with pytest.raises(TypeError, match=f"obj_id {obj_id} \\(MeasureOnly\\) cannot name a part"):
+        class_similarities(image, CAM.K, t, None, {obj_id: MeasureOnly(default_banks[obj_id])})
+    matcher = RotationMatcher(default_banks[obj_id])
+    assert set(class_similarities(image, CAM.K, t, None, {obj_id: matcher})) == {obj_id}
+
+
 def _render(models, poses):
     """An image of ``models`` at ``poses`` (T_cam_obj), lit as the templates are, on grey."""
     T_world_cam = np.eye(4)
