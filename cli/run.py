@@ -242,6 +242,12 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     return out
 
 
+def card_settings(card_verification: dict | None, given: dict) -> dict:
+    """The verification settings a model's card gives for its masks (``ModelCard.verification``)
+    that ``--verification`` (``given``) does not replace."""
+    return {k: v for k, v in (card_verification or {}).items() if k not in given}
+
+
 def tracker_config(
     no_verify: bool = False, no_refine: bool = False, verification: dict | None = None
 ):
@@ -333,6 +339,10 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
                 "each from its images, which a translation-only run does not pass it; drop "
                 "--translation-only"
             )
+    verification = verification_settings(args.verification)
+    config = tracker_config(args.no_verify, args.no_refine, verification)
+    if args.frontend == "network":
+        config = config.with_card(card_settings(frontend.network.card.verification, verification))
     out = Path(args.out)
     report = run_and_write(
         dataset,
@@ -342,9 +352,7 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
         scene_ids,
         rotation=rotation,
         quiet=args.quiet,
-        config=tracker_config(
-            args.no_verify, args.no_refine, verification_settings(args.verification)
-        ),
+        config=config,
         track_crops=args.track_crops,
     )
     print(report.summary)

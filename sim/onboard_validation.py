@@ -94,7 +94,7 @@ def validate(
     """Front-end recall/precision and ADD-sym at 4 and 8 views on the held-out renders of
     :func:`render_validations`."""
     from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.tracker import MultiViewEstimator
+    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.evaluation.frontend_metrics import score_frontend
     from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
@@ -121,8 +121,8 @@ def validate(
             LabelledNetworkFrontend(dataset, network),
             show_progress=False,
             rotation=True,
-            estimator_factory=lambda d=dataset, s=shared: MultiViewEstimator(
-                d.catalog, banks=s.banks()
+            estimator_factory=lambda d=dataset, s=shared, n=network: MultiViewEstimator(
+                d.catalog, TrackerConfig().with_card(n.card.verification), banks=s.banks()
             ),
         )
         accuracy = {}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from posefuse.estimator.rotation.matching import RotationConfig
 from posefuse.estimator.rotation.mixture import MixtureConfig
@@ -83,3 +83,11 @@ class TrackerConfig:
         """The defaults, with the verification across views on or off, in the update or
         deferred (``deferred_verification``)."""
         return cls(verification=VerificationConfig(enabled=enabled), deferred_verification=deferred)
+
+    def with_card(self, card_verification: dict | None) -> TrackerConfig:
+        """These settings with the verification settings a model card gives for its front
+        end's masks (``ModelCard.verification``: ``mask_weight``, how far its mask outlines are
+        trusted, and ``max_fit``); None: unchanged."""
+        if not card_verification:
+            return self
+        return replace(self, verification=replace(self.verification, **card_verification))

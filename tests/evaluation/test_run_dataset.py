@@ -185,6 +185,20 @@ def test_random_rotations_fail_add_sym_and_the_oracle_run_passes_well_above(
     assert "| never detected | in one view | in two or more views |" in fates_md
 
 
+def test_a_model_cards_verification_settings_apply_unless_the_command_line_names_them():
+    from posefuse.cli.run import card_settings, tracker_config, verification_settings
+    from posefuse.estimator.verification.verify import VerificationConfig
+
+    card = {"mask_weight": 0.5, "max_fit": 1.0}
+    given = verification_settings(["max_fit=none", "max_views=3"])
+    config = tracker_config(verification=given).with_card(card_settings(card, given))
+    assert config.verification.mask_weight == 0.5  # the card's
+    assert config.verification.max_fit is None and config.verification.max_views == 3  # told
+    assert tracker_config().with_card(card_settings(None, {})) == tracker_config()
+    default = VerificationConfig()
+    assert tracker_config().with_card(None).verification.max_fit == default.max_fit
+
+
 def test_verification_settings_from_the_command_line_replace_only_what_they_name():
     from posefuse.cli.run import tracker_config, verification_settings
     from posefuse.estimator.core.errors import PosefuseError

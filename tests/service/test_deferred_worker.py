@@ -154,3 +154,30 @@ def test_the_daemons_network_threads_sleep_after_a_run_unless_told_to_spin(monke
     monkeypatch.setattr("posefuse.estimator.frontend.network.NetworkFrontend", Recorder)
     make_detector(Settings(onnx_threads=1), catalog=None)
     assert seen == {"threads": 1, "spin": False}
+
+
+def test_the_daemon_takes_the_verification_settings_its_models_card_gives(tmp_path):
+    """A part set's card (``verification``, written by onboarding) sets the verification's
+    mask weight and poor-fit bound; the shipped model's card has none and keeps the defaults."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from posefuse.estimator.verification.verify import VerificationConfig
+    from posefuse.service.settings import DEFAULT_MODEL
+
+    default = tracker_config(Settings())
+    assert default.verification.mask_weight == VerificationConfig().mask_weight
+    assert default.verification.max_fit == VerificationConfig().max_fit
+    model = Path(DEFAULT_MODEL)
+    card = json.loads(model.with_suffix(".json").read_text())
+    shutil.copy(model, tmp_path / model.name)
+    if card.get("two_stage", {}).get("crop_model"):
+        shutil.copy(model.parent / card["two_stage"]["crop_model"], tmp_path)
+    copy = tmp_path / model.name
+    settings = {"mask_weight": 0.25, "max_fit": 0.9}
+    copy.with_suffix(".json").write_text(json.dumps({**card, "verification": settings}))
+    config = tracker_config(Settings(model=copy))
+    assert (config.verification.mask_weight, config.verification.max_fit) == (0.25, 0.9)
+    assert config.verification.enabled and config.deferred_verification
+    assert config.verification.edges == default.verification.edges

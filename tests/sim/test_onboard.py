@@ -175,6 +175,10 @@ def _onboard_and_serve(
     from posefuse.sim.train import MIN_SCORE_CANDIDATES
 
     card = json.loads((out / "model" / "parts.json").read_text())
+    # a fine-tune's masks weigh less in the verification than the shipped model's
+    from posefuse.sim.onboard import FINE_TUNED_VERIFICATION
+
+    assert card["verification"] == FINE_TUNED_VERIFICATION
     tuning = card["validation"]["min_score_tuning"]
     assert [row["min_score"] for row in tuning] == list(MIN_SCORE_CANDIDATES)
     assert card["two_stage"]["min_score"] in MIN_SCORE_CANDIDATES
@@ -305,6 +309,7 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     assert manifest["training_steps"] == 0
     card = json.loads((out / "model" / "parts.json").read_text())
     assert card["agnostic"] is True and card["classes"] == [{"obj_id": ANY_PART, "name": "part"}]
+    assert "verification" not in card  # the shipped model's masks, weighed as its own
     assert (out / "model" / card["two_stage"]["crop_model"]).is_file()
     for profile in ("mixed", "robi"):
         figures = manifest["validation"][profile]

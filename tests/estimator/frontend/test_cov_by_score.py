@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from posefuse.estimator.frontend.network import ModelCard, _cov_by_score, score_factor
+from posefuse.estimator.frontend.card import ModelCard, _cov_by_score, score_factor
 
 
 def test_the_factor_of_a_score_is_its_bins():

@@ -480,3 +480,22 @@ def test_an_any_part_model_needs_a_two_stage_model_with_its_card(tmp_path):
     copy = _model_copy(tmp_path / "one", kind="center_voting")
     with pytest.raises(PosefuseError, match="not a two-stage model"):
         write_any_part_model(str(copy.with_suffix(".ckpt")), tmp_path / "p.onnx")
+
+
+def test_a_cards_verification_settings_are_read_written_and_refused_when_they_cannot_be(
+    robi_catalog, tmp_path
+):
+    """A card's ``verification`` (the settings its masks call for): absent on the shipped card,
+    read and written back where a card has it, and refused naming the field where it names an
+    unknown setting or a value that is not a finite number >= 0."""
+    assert load_card(DEFAULT_MODEL).verification is None
+    assert "verification" not in load_card(DEFAULT_MODEL).to_json()
+    settings = {"mask_weight": 0.5, "max_fit": 1.0}
+    card = load_card(_model_copy(tmp_path / "a", verification=settings))
+    assert card.verification == settings and card.to_json()["verification"] == settings
+    assert "verification" not in (card.extra or {})
+    bad = [{"mask_weight": -1.0}, {"mask_weight": "heavy"}, {"mask_weight": float("nan")}]
+    bad += [{"temperature": 0.1}, [0.5]]
+    for k, values in enumerate(bad):
+        with pytest.raises(ModelError, match="verification|could not convert"):
+            load_card(_model_copy(tmp_path / f"bad{k}", verification=values))
