@@ -55,8 +55,16 @@ MANIFEST_VERSION = 1
 # is fitted with, so a poor fit is told at a lower cost (max_fit 1.0, the default 1.4). Chosen
 # on two onboardings' own validation renders (the five meshes of ../shared/objects, seeds
 # 880000/880001 and 880010/880011), never on a held-out set:
-# docs/lab/2026-12-06-fine-tuned-masks-weigh-less.md
-FINE_TUNED_VERIFICATION = {"mask_weight": 0.5, "max_fit": 1.0}
+# docs/lab/2026-12-06-fine-tuned-masks-weigh-less.md. Its refined poses are off by more than
+# the shipped model's, so the published covariance's floor is wider: 0.02 d and 3 degrees per
+# axis (the default 0.01 d and 1.5), the least of a grid that makes the right poses' median
+# NEES at most chi-squared's (2.37) on the same sets: docs/lab/2026-12-07-fine-tuned-floor.md
+FINE_TUNED_VERIFICATION = {
+    "mask_weight": 0.5,
+    "max_fit": 1.0,
+    "refinement.floor_translation_frac": 0.02,
+    "refinement.floor_rotation_deg": 3.0,
+}
 
 
 @dataclass(frozen=True)

@@ -86,8 +86,16 @@ class TrackerConfig:
 
     def with_card(self, card_verification: dict | None) -> TrackerConfig:
         """These settings with the verification settings a model card gives for its front
-        end's masks (``ModelCard.verification``: ``mask_weight``, how far its mask outlines are
-        trusted, and ``max_fit``); None: unchanged."""
+        end (``ModelCard.verification``: ``mask_weight``, how far its mask outlines are
+        trusted, ``max_fit``, and ``refinement.KEY`` for the published covariance's floor);
+        None: unchanged."""
         if not card_verification:
             return self
-        return replace(self, verification=replace(self.verification, **card_verification))
+        prefix = "refinement."
+        refine = {k[len(prefix) :]: v for k, v in card_verification.items() if k.startswith(prefix)}
+        own = {k: v for k, v in card_verification.items() if not k.startswith(prefix)}
+        return replace(
+            self,
+            verification=replace(self.verification, **own),
+            refinement=replace(self.refinement, **refine),
+        )

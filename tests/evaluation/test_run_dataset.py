@@ -189,11 +189,20 @@ def test_a_model_cards_verification_settings_apply_unless_the_command_line_names
     from posefuse.cli.run import card_settings, tracker_config, verification_settings
     from posefuse.estimator.verification.verify import VerificationConfig
 
-    card = {"mask_weight": 0.5, "max_fit": 1.0}
-    given = verification_settings(["max_fit=none", "max_views=3"])
+    card = {
+        "mask_weight": 0.5,
+        "max_fit": 1.0,
+        "refinement.floor_translation_frac": 0.02,
+        "refinement.floor_rotation_deg": 3.0,
+    }
+    given = verification_settings(
+        ["max_fit=none", "max_views=3", "refinement.floor_rotation_deg=2"]
+    )
     config = tracker_config(verification=given).with_card(card_settings(card, given))
     assert config.verification.mask_weight == 0.5  # the card's
     assert config.verification.max_fit is None and config.verification.max_views == 3  # told
+    assert config.refinement.floor_translation_frac == 0.02  # the card's floor
+    assert config.refinement.floor_rotation_deg == 2.0  # told
     assert tracker_config().with_card(card_settings(None, {})) == tracker_config()
     default = VerificationConfig()
     assert tracker_config().with_card(None).verification.max_fit == default.max_fit
@@ -281,3 +290,34 @@ def test_verification_settings_from_the_command_line_replace_only_what_they_name
     ]:
         with pytest.raises(PosefuseError, match=says):
             verification_settings([bad])
+
+
+def test_the_summary_gives_the_published_poses_nees_and_that_of_the_right_ones_apart():
+    """translation_summary.md: the published poses' NEES, and then that of the right ones only
+    (ADD-sym < 0.1 d), which a Gaussian can cover; a wrong basin is no Gaussian's to cover."""
+    from types import SimpleNamespace
+
+    from posefuse.evaluation.ambiguity import AmbiguityRow
+    from posefuse.evaluation.run_dataset import DatasetRun, summary_markdown
+    from posefuse.evaluation.tracking import AssociationScore
+
+    nees = [(1.0, 2.0), (3.0, 4.0), (100.0, 500.0), (5.0, 9.0)]
+    right = [True, True, False, True]
+    rows = [AmbiguityRow(8, 1, 0.0, False, r, r) for r in right]
+    run = DatasetRun(
+        rows=(),
+        association=AssociationScore(1.0, 1.0, 4, 4),
+        results={},
+        targets={},
+        pose_nees={8: nees},
+        ambiguity={8: rows},
+    )
+    text = summary_markdown(run, {1: SimpleNamespace(name="part")}, checkpoints=(8,))
+    assert "Published poses after 8 views (4): median NEES of the translation 4.00" in text
+    assert "inside their 95% ellipsoid 75% and 50%." in text
+    assert "Of them right (ADD-sym < 0.1 d, 3), what a Gaussian can cover:" in text
+    assert "cover: median 3.00 and 4.00;" in text
+    assert "inside 100% and 67%." in text
+    # without the rows of those poses (a run from before them) the line is left out
+    run = DatasetRun((), AssociationScore(1.0, 1.0, 4, 4), {}, {}, pose_nees={8: nees})
+    assert "Of them right" not in summary_markdown(run, {1: SimpleNamespace(name="p")}, (8,))

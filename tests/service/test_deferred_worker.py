@@ -158,7 +158,8 @@ def test_the_daemons_network_threads_sleep_after_a_run_unless_told_to_spin(monke
 
 def test_the_daemon_takes_the_verification_settings_its_models_card_gives(tmp_path):
     """A part set's card (``verification``, written by onboarding) sets the verification's
-    mask weight and poor-fit bound; the shipped model's card has none and keeps the defaults."""
+    mask weight, poor-fit bound and covariance floor; the shipped model's card has none and
+    keeps the defaults."""
     import json
     import shutil
     from pathlib import Path
@@ -175,9 +176,11 @@ def test_the_daemon_takes_the_verification_settings_its_models_card_gives(tmp_pa
     if card.get("two_stage", {}).get("crop_model"):
         shutil.copy(model.parent / card["two_stage"]["crop_model"], tmp_path)
     copy = tmp_path / model.name
-    settings = {"mask_weight": 0.25, "max_fit": 0.9}
+    settings = {"mask_weight": 0.25, "max_fit": 0.9, "refinement.floor_rotation_deg": 3.0}
     copy.with_suffix(".json").write_text(json.dumps({**card, "verification": settings}))
     config = tracker_config(Settings(model=copy))
     assert (config.verification.mask_weight, config.verification.max_fit) == (0.25, 0.9)
+    assert config.refinement.floor_rotation_deg == 3.0  # the published covariance's floor
+    assert default.refinement.floor_rotation_deg != 3.0
     assert config.verification.enabled and config.deferred_verification
     assert config.verification.edges == default.verification.edges

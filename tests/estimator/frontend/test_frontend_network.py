@@ -490,12 +490,13 @@ def test_a_cards_verification_settings_are_read_written_and_refused_when_they_ca
     unknown setting or a value that is not a finite number >= 0."""
     assert load_card(DEFAULT_MODEL).verification is None
     assert "verification" not in load_card(DEFAULT_MODEL).to_json()
-    settings = {"mask_weight": 0.5, "max_fit": 1.0}
+    settings = {"mask_weight": 0.5, "max_fit": 1.0, "refinement.floor_translation_frac": 0.02}
     card = load_card(_model_copy(tmp_path / "a", verification=settings))
     assert card.verification == settings and card.to_json()["verification"] == settings
     assert "verification" not in (card.extra or {})
     bad = [{"mask_weight": -1.0}, {"mask_weight": "heavy"}, {"mask_weight": float("nan")}]
-    bad += [{"temperature": 0.1}, [0.5]]
+    bad += [{"temperature": 0.1}, [0.5], {"refinement.damping": 0.1}]
+    bad += [{"refinement.floor_rotation_deg": float("inf")}]
     for k, values in enumerate(bad):
         with pytest.raises(ModelError, match="verification|could not convert"):
             load_card(_model_copy(tmp_path / f"bad{k}", verification=values))
