@@ -384,28 +384,6 @@ def class_scale_factors(catalog: Catalog, init: str | None) -> tuple[float, ...]
     return factors if any(f != 1.0 for f in factors) else ()
 
 
-def heatmap_start_classes(catalog: Catalog, init: str | None) -> tuple[int, ...]:
-    """Per part (catalog order) the class of the shipped catalog model whose heatmap its own
-    starts from: the shipped part nearest in diameter (by ratio), a detector of parts of its
-    size. Empty where the initial model's class count equals the part set's (its heatmaps are
-    taken as they are), and where its parts are not known (only the shipped catalog model's
-    are). Without it a part set of another number of parts than the shipped five started its
-    heatmaps from nothing (docs/own-parts.md)."""
-    from posefuse.estimator.core.objects import load_catalog
-    from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
-
-    shipped = Path(DEFAULT_MODEL).with_suffix(".ckpt")
-    if init is None or not shipped.is_file() or not Path(init).samefile(shipped):
-        return ()
-    known = [m.diameter for _, m in sorted(load_catalog(DEFAULT_CATALOG).items())]
-    if len(known) == len(catalog):
-        return ()
-    log_known = np.log(known)
-    return tuple(
-        int(np.argmin(np.abs(log_known - np.log(m.diameter)))) for _, m in sorted(catalog.items())
-    )
-
-
 def initial_checkpoint(config) -> str | None:
     """The checkpoint onboarding fine-tunes from: ``config.init``, where "shipped" means the
     shipped generalist's (``models/generalist.ckpt``: it has seen hundreds of part shapes, so
@@ -476,7 +454,6 @@ def _train(
 
     init = initial_checkpoint(config)
     factors = class_scale_factors(catalog, init) if config.scale_by_size else ()
-    starts = heatmap_start_classes(catalog, init)
 
     if config.steps is not None:  # a fixed amount of work: no clock decides anything
         return train(
@@ -501,7 +478,6 @@ def _train(
                 tune_min_score=True,
                 class_scale_factors=factors,
                 class_balanced=config.class_balanced,
-                class_init=starts,
             ),
         )
     # what the validation still needs once its scenes are rendered: both passes over its views
@@ -541,7 +517,6 @@ def _train(
         frozen_backbones=config.frozen_backbones,
         class_scale_factors=factors,
         class_balanced=config.class_balanced,
-        class_init=starts,
     )
     return train(catalog_dir, model_path, train_config)
 

@@ -145,10 +145,6 @@ class TrainConfig:
     threads: int | None = None
     resume: str | None = None
     init: str | None = None  # a checkpoint of another catalog to fine-tune from
-    # with ``init`` of another class count: per class (catalog order) the class of ``init``
-    # whose heatmap it starts from (onboarding: the part nearest in size,
-    # sim.onboard.heatmap_start_classes); empty: those heatmaps start fresh
-    class_init: tuple[int, ...] = ()
     run_steps: int | None = None  # this run stops after this many steps (the schedule goes on)
     # warm restarts appended by ``--extend``: (first step, last step + 1, peak learning rate)
     restarts: tuple[tuple[int, int, float], ...] = ()
@@ -379,17 +375,6 @@ class _Nets:
                 # learns from there which part it is
                 det[k] = v.expand_as(det[k]).clone()
                 fresh.append(f"{k} (every class from the generalist's one)")
-            elif k.startswith("heatmap.") and k in det and self.config.class_init:
-                # another catalog's heatmaps: each class starts as the one of its class_init,
-                # a detector of parts like it, instead of from nothing
-                start = list(self.config.class_init)
-                if len(start) != det[k].shape[0] or not all(0 <= i < v.shape[0] for i in start):
-                    raise ValueError(
-                        f"class_init {tuple(start)}: one class of the {v.shape[0]} of the start "
-                        f"for each of the {det[k].shape[0]} classes"
-                    )
-                det[k] = v[start].clone()
-                fresh.append(f"{k} (each class from the start's class {tuple(start)})")
             else:
                 fresh.append(k)
         self.det.load_state_dict(det)

@@ -291,31 +291,6 @@ def test_parts_much_larger_than_the_shipped_models_are_found_at_half_the_scale()
     assert class_scale_factors(grown, None) == ()
 
 
-def test_a_part_set_of_another_count_starts_each_heatmap_from_the_shipped_part_nearest_in_size():
-    """``heatmap_start_classes``: from the shipped model, a part set of another number of parts
-    starts each part's heatmap from the shipped part nearest in diameter (by ratio); five parts
-    keep the shipped heatmaps as they are, and another start gets nothing."""
-    import dataclasses
-
-    from posefuse.estimator.core.objects import load_catalog
-    from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
-    from posefuse.sim.onboard import heatmap_start_classes
-
-    shipped = load_catalog(DEFAULT_CATALOG)
-    init = str(Path(DEFAULT_MODEL).with_suffix(".ckpt"))
-    assert heatmap_start_classes(shipped, init) == ()
-    diameters = [m.diameter for _, m in sorted(shipped.items())]
-    smallest, largest = int(np.argmin(diameters)), int(np.argmax(diameters))
-    model = shipped[1]
-    three = {
-        1: dataclasses.replace(model, diameter=0.5 * min(diameters)),
-        2: dataclasses.replace(model, diameter=3.0 * max(diameters)),
-        7: dataclasses.replace(model, diameter=diameters[2]),
-    }
-    assert heatmap_start_classes(three, init) == (smallest, largest, 2)
-    assert heatmap_start_classes(three, None) == ()
-
-
 def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, monkeypatch):
     """``--steps 0``: no training scene rendered, no step taken; the part set's model is the
     shipped one as "a part", its validation scores the detections as parts of any class, and

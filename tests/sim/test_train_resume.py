@@ -84,26 +84,6 @@ def test_fine_tuning_replaces_only_the_class_heatmaps(tmp_path):
     assert np.isclose(float(other.det.heatmap.bias[0]), -2.19)
 
 
-def test_class_heatmaps_of_another_count_start_from_the_classes_class_init_names(tmp_path):
-    """``class_init``: each new class's heatmap is a copy of the one of the start's class it
-    names; a mapping of the wrong length or out of range is refused."""
-    from posefuse.sim.train import _Nets
-
-    base = _Nets(5, _config(tmp_path))
-    state = {"det": base.det.state_dict(), "crop": base.crop.state_dict()}
-    other = _Nets(3, _config(tmp_path, seed=1, class_init=(4, 1, 4)))
-    fresh = other.init_from(state)
-    assert fresh == [
-        f"heatmap.{k} (each class from the start's class (4, 1, 4))" for k in ("weight", "bias")
-    ]
-    for j, i in enumerate((4, 1, 4)):
-        assert torch.equal(other.det.heatmap.weight[j], base.det.heatmap.weight[i])
-        assert torch.equal(other.det.heatmap.bias[j], base.det.heatmap.bias[i])
-    for bad in ((4, 1), (0, 1, 5)):
-        with pytest.raises(ValueError, match="class_init"):
-            _Nets(3, _config(tmp_path, seed=1, class_init=bad)).init_from(state)
-
-
 def test_stage_two_widened_for_the_box_channel_starts_as_the_one_it_comes_from(tmp_path):
     from posefuse.sim.train import _Nets
 
