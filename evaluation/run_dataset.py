@@ -335,17 +335,41 @@ def summary_markdown(run: DatasetRun, catalog, checkpoints: tuple[int, ...] = CH
             f"translation {median[0]:.2f}, of the rotation {median[1]:.2f} (expected 2.37); "
             f"inside their 95% ellipsoid {inside[0]:.0f}% and {inside[1]:.0f}%."
         )
-        rows = run.ambiguity.get(n, [])
-        if len(rows) == len(pairs):  # the same poses, in the same order (_scored)
-            right = pairs[[r.right for r in rows]]
-            if len(right):
-                inside, median = _nees_figures(right)
-                lines.append(
-                    f"Of them right (ADD-sym < 0.1 d, {len(right)}), what a Gaussian can cover: "
-                    f"median {median[0]:.2f} and {median[1]:.2f}; inside {inside[0]:.0f}% and "
-                    f"{inside[1]:.0f}%."
-                )
+        right = right_pose_nees(run, n)
+        if len(right):
+            inside, median = _nees_figures(right)
+            lines.append(
+                f"Of them right (ADD-sym < 0.1 d, {len(right)}), what a Gaussian can cover: "
+                f"median {median[0]:.2f} and {median[1]:.2f}; inside {inside[0]:.0f}% and "
+                f"{inside[1]:.0f}%."
+            )
     return "\n".join(lines)
+
+
+def right_pose_nees(run: DatasetRun, n_views: int) -> np.ndarray:
+    """(K, 2) NEES (translation, rotation) after ``n_views`` views of the published poses that
+    are right (ADD-sym < 0.1 d): a pose in a wrong basin is no Gaussian's to cover. Empty where
+    the run has no such poses, or no ambiguity rows beside its NEES (the rows and the NEES are
+    of the same poses in the same order, ``_scored``)."""
+    pairs = np.array(run.pose_nees.get(n_views, []), float).reshape(-1, 2)
+    rows = run.ambiguity.get(n_views, [])
+    if len(rows) != len(pairs):
+        return np.zeros((0, 2))
+    return pairs[np.array([r.right for r in rows], bool)].reshape(-1, 2)
+
+
+def right_pose_coverage(run: DatasetRun, n_views: int) -> dict | None:
+    """Of the right poses after ``n_views`` views (:func:`right_pose_nees`): their count and the
+    shares inside their published 95% ellipsoid, translation and rotation; None without any."""
+    right = right_pose_nees(run, n_views)
+    if not len(right):
+        return None
+    inside, _ = _nees_figures(right)
+    return {
+        "right_poses": len(right),
+        "inside_95_translation": float(inside[0]) / 100,
+        "inside_95_rotation": float(inside[1]) / 100,
+    }
 
 
 def _nees_figures(pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

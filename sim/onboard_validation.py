@@ -97,7 +97,11 @@ def validate(
     from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
     from posefuse.evaluation.dataset import load_dataset
     from posefuse.evaluation.frontend_metrics import score_frontend
-    from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
+    from posefuse.evaluation.run_dataset import (
+        LabelledNetworkFrontend,
+        right_pose_coverage,
+        run_dataset,
+    )
     from posefuse.evaluation.scores import evaluate
 
     figures = {}
@@ -136,6 +140,9 @@ def validate(
                     "ar_mssd": total.ar_mssd,
                     "precision": total.precision(),
                     "instances": total.n_instances,
+                    # is the published covariance honest: the right poses inside their 95%
+                    # ellipsoid (None: no right pose)
+                    "covariance": right_pose_coverage(run, n),
                 }
         figures[profile] = {
             "dataset": f"validation/{profile}",
@@ -153,6 +160,12 @@ def validate(
             "views_accuracy": accuracy,
         }
         acc = "  ".join(f"{n} views ADD-sym {100 * a['add_sym']:.1f}%" for n, a in accuracy.items())
+        c = accuracy[max(accuracy, key=int)]["covariance"] if accuracy else None
+        if c:
+            acc += (
+                f"; right poses inside their 95% ellipsoid {100 * c['inside_95_translation']:.0f}%"
+                f" / {100 * c['inside_95_rotation']:.0f}% (translation / rotation)"
+            )
         echo(
             f"  {profile} ({n_scenes} scenes, {scored[str(config.held_views)]} parts scored at "
             f"{config.held_views} views): front end{' (a part, of any class)' if agnostic else ''}"

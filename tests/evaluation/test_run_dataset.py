@@ -298,7 +298,7 @@ def test_the_summary_gives_the_published_poses_nees_and_that_of_the_right_ones_a
     from types import SimpleNamespace
 
     from posefuse.evaluation.ambiguity import AmbiguityRow
-    from posefuse.evaluation.run_dataset import DatasetRun, summary_markdown
+    from posefuse.evaluation.run_dataset import DatasetRun, right_pose_coverage, summary_markdown
     from posefuse.evaluation.tracking import AssociationScore
 
     nees = [(1.0, 2.0), (3.0, 4.0), (100.0, 500.0), (5.0, 9.0)]
@@ -318,6 +318,10 @@ def test_the_summary_gives_the_published_poses_nees_and_that_of_the_right_ones_a
     assert "Of them right (ADD-sym < 0.1 d, 3), what a Gaussian can cover:" in text
     assert "cover: median 3.00 and 4.00;" in text
     assert "inside 100% and 67%." in text
+    coverage = right_pose_coverage(run, 8)  # what onboarding's validation keeps
+    assert coverage["right_poses"] == 3 and coverage["inside_95_translation"] == 1.0
+    assert abs(coverage["inside_95_rotation"] - 2 / 3) < 1e-12
     # without the rows of those poses (a run from before them) the line is left out
     run = DatasetRun((), AssociationScore(1.0, 1.0, 4, 4), {}, {}, pose_nees={8: nees})
     assert "Of them right" not in summary_markdown(run, {1: SimpleNamespace(name="p")}, (8,))
+    assert right_pose_coverage(run, 8) is None and right_pose_coverage(run, 4) is None

@@ -317,6 +317,12 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
         assert figures["frontend"]["recall"] >= 0.5, figures
         # one part: every part found is named it, so found parts are posed
         assert figures["views_accuracy"]["4"]["add_sym"] > 0, figures
+        # and the right ones say whether their published covariance covers their error
+        coverage = figures["views_accuracy"]["4"]["covariance"]
+        assert coverage["right_poses"] >= 1, figures
+        assert 0 <= coverage["inside_95_translation"] <= 1, figures
+        assert 0 <= coverage["inside_95_rotation"] <= 1, figures
+    assert "right poses inside their 95% ellipsoid" in text
 
 
 @pytest.mark.parametrize(
