@@ -257,39 +257,10 @@ def tracker_config(
 
     config = TrackerConfig()
     if verification:
-        refine = {
-            k[len("refinement.") :]: v
-            for k, v in verification.items()
-            if k.startswith("refinement.")
-        }
-        if refine:
-            try:
-                config = dataclasses.replace(
-                    config, refinement=dataclasses.replace(config.refinement, **refine)
-                )
-            except ValueError as err:
-                raise PosefuseError(f"--verification refinement.*: {err}") from None
-        own = {
-            k: v
-            for k, v in verification.items()
-            if not k.startswith(("edges.", "refinement.", "turns."))
-        }
         try:
-            verification_config = dataclasses.replace(config.verification, **own)
+            config = config.with_verification_settings(verification)
         except ValueError as err:
             raise PosefuseError(f"--verification: {err}") from None
-        for name in ("edges", "turns"):  # the settings the verification's config holds
-            nested = {
-                k[len(name) + 1 :]: v for k, v in verification.items() if k.startswith(f"{name}.")
-            }
-            if not nested:
-                continue
-            try:
-                inner = dataclasses.replace(getattr(verification_config, name), **nested)
-            except ValueError as err:
-                raise PosefuseError(f"--verification {name}.*: {err}") from None
-            verification_config = dataclasses.replace(verification_config, **{name: inner})
-        config = dataclasses.replace(config, verification=verification_config)
     if no_verify:
         config = dataclasses.replace(
             config, verification=dataclasses.replace(config.verification, enabled=False)

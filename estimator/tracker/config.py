@@ -89,13 +89,34 @@ class TrackerConfig:
         end (``ModelCard.verification``: ``mask_weight``, how far its mask outlines are
         trusted, ``max_fit``, and ``refinement.KEY`` for the published covariance's floor);
         None: unchanged."""
-        if not card_verification:
-            return self
-        prefix = "refinement."
-        refine = {k[len(prefix) :]: v for k, v in card_verification.items() if k.startswith(prefix)}
-        own = {k: v for k, v in card_verification.items() if not k.startswith(prefix)}
-        return replace(
-            self,
-            verification=replace(self.verification, **own),
-            refinement=replace(self.refinement, **refine),
-        )
+        return self.with_verification_settings(card_verification or {})
+
+    def with_verification_settings(self, settings: dict) -> TrackerConfig:
+        """These settings with VerificationConfig fields replaced by ``settings`` (field
+        name -> value), ``edges.KEY`` and ``turns.KEY`` for the EdgeConfig and TurnJudgeConfig
+        it holds, ``refinement.KEY`` for the RefineConfig. Raises ValueError naming the group
+        of a setting its config refuses."""
+        groups: dict[str, dict] = {"": {}, "edges": {}, "turns": {}, "refinement": {}}
+        for key, value in settings.items():
+            group, dot, name = key.partition(".")
+            if dot and group in groups:
+                groups[group][name] = value
+            else:
+                groups[""][key] = value
+        config = self
+        if groups["refinement"]:
+            try:
+                config = replace(
+                    config, refinement=replace(config.refinement, **groups["refinement"])
+                )
+            except ValueError as err:
+                raise ValueError(f"refinement.*: {err}") from None
+        verification = replace(config.verification, **groups[""])
+        for name in ("edges", "turns"):  # the settings the verification's config holds
+            if groups[name]:
+                try:
+                    inner = replace(getattr(verification, name), **groups[name])
+                except ValueError as err:
+                    raise ValueError(f"{name}.*: {err}") from None
+                verification = replace(verification, **{name: inner})
+        return replace(config, verification=verification)
