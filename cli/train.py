@@ -14,6 +14,12 @@ from posefuse.estimator.core.errors import PosefuseError
 from posefuse.service.resources import DEFAULT_CATALOG
 
 
+def bf16_choice(args: argparse.Namespace) -> bool | None:
+    """``TrainConfig.bf16`` from the flags: ``--fp32`` False, ``--bf16`` True, neither None
+    (bfloat16 autocast where the CPU has bfloat16 instructions: ``sim.train.native_bf16``)."""
+    return False if args.fp32 else (True if args.bf16 else None)
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     try:  # lazy: torch is the optional [train] extra
         import torch  # noqa: F401
@@ -73,7 +79,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         checkpoint=args.checkpoint,
         checkpoint_minutes=args.checkpoint_minutes,
         tune=tuple(args.tune),
-        bf16=not args.fp32,
+        bf16=bf16_choice(args),
         resume=args.resume,
         init=args.init,
         run_steps=args.run_steps,
@@ -212,8 +218,15 @@ def register(subparsers) -> None:
         default=[],
         help="a BOP dataset scored at every checkpoint (repeat for several; tuning seeds only)",
     )
-    p.add_argument(
-        "--fp32", action="store_true", help="train in float32 (default: bfloat16 autocast)"
+    precision = p.add_mutually_exclusive_group()
+    precision.add_argument(
+        "--fp32",
+        action="store_true",
+        help="train in float32 (default: bfloat16 autocast where the CPU has bfloat16 "
+        "instructions, float32 elsewhere)",
+    )
+    precision.add_argument(
+        "--bf16", action="store_true", help="train in bfloat16 autocast even without them"
     )
     p.add_argument("--workers", type=int, default=2, help="rendering processes")
     p.add_argument(

@@ -92,3 +92,32 @@ def test_a_fine_tunes_learning_curve_continues_its_bases():
     assert np.allclose([p["wall_hours"] for p in curve], [0.25, 0.7, 1.05, 1.1])
     assert lineage_curve({"curve": [point(5, 0.1)]}) == [{**point(5, 0.1), "run": 1}]
     assert curve_table(curve).splitlines()[2].startswith("| 1 | 50 | 0.50 | 0.25 |")
+
+
+def test_bfloat16_autocast_only_where_the_cpu_has_bfloat16_instructions():
+    from posefuse.sim.train import native_bf16
+
+    head = "processor\t: 0\nvendor_id\t: X\nflags\t\t: fpu sse2 avx2 fma"
+    assert not native_bf16(head + "\n")  # AVX2 only: torch emulates bfloat16, slower
+    assert native_bf16(head + " avx512f avx512_bf16\n")
+    assert native_bf16(head + " amx_tile amx_bf16\n")
+    assert not native_bf16(head + " avx512f avx512_vnni\n")  # AVX-512 without its bf16 part
+    assert not native_bf16("processor\t: 0\n")  # no flags line (another platform's file)
+    assert not native_bf16("flags_other : avx512_bf16\n")  # only the line named "flags" counts
+
+
+def test_posefuse_train_chooses_the_precision_by_the_cpu_unless_told():
+    import argparse
+
+    import pytest
+
+    from posefuse.cli import train as train_cli
+
+    parser = argparse.ArgumentParser()
+    train_cli.register(parser.add_subparsers())
+    base = ["train", "--out", "m.onnx"]
+    assert train_cli.bf16_choice(parser.parse_args(base)) is None  # the CPU decides
+    assert train_cli.bf16_choice(parser.parse_args([*base, "--fp32"])) is False
+    assert train_cli.bf16_choice(parser.parse_args([*base, "--bf16"])) is True
+    with pytest.raises(SystemExit):
+        parser.parse_args([*base, "--fp32", "--bf16"])
