@@ -140,7 +140,7 @@ class TrainConfig:
     checkpoint_minutes: float = 30.0
     tune: tuple[str, ...] = ()  # BOP datasets scored at each checkpoint (the learning curve)
     # bfloat16 autocast with channels_last; None: where the CPU has bfloat16 instructions
-    # (native_bf16: 2.4x float32 with them, about 6x slower than float32 without)
+    # (native_bf16: faster than float32 with them, about 9x slower without)
     bf16: bool | None = None
     # torch threads of the loop; None: the cores other processes leave free, measured every
     # THREAD_CHECK_STEPS steps (sim.core_share)
@@ -203,8 +203,8 @@ BF16_CPU_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
 def native_bf16(cpuinfo: str | None = None) -> bool:
     """Whether this CPU computes in bfloat16 natively, read from ``cpuinfo`` (the text of
     ``/proc/cpuinfo``; None reads it). Without those instructions torch emulates bfloat16 and
-    autocast is slower than float32 (a training step about six times slower on an AVX2 CPU);
-    with them it is about 2.4 times faster. Where the file cannot be read, False: float32 is
+    autocast is slower than float32 (a training step about nine times slower on an AVX2 CPU);
+    with them it was 1.5 times faster. Where the file cannot be read, False: float32 is
     never the slow choice by much."""
     if cpuinfo is None:
         try:

@@ -312,7 +312,7 @@ class NetworkFrontend:
             for d in dets
             if d is not None and np.sqrt(np.trace(d.center_cov)) <= self.max_center_std_px
         ]
-        dets = suppress_duplicates(dets, config.duplicate_factor, config.duplicate_mask_overlap)
+        dets = suppress_duplicates(dets, config.duplicate_factor)
         return sorted(dets, key=lambda d: (d.obj_id, -d.score))
 
     def detect_at(

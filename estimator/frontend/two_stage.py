@@ -38,8 +38,6 @@ class TwoStageConfig:
     min_crop_side: float = 16.0  # image pixels
     min_votes: int = 10  # object pixels (crop output cells) a center needs
     duplicate_factor: float = 0.3  # same-class centers closer than this x box side: one part
-    # ... and, when set, masks overlapping by this share of the smaller (else two parts)
-    duplicate_mask_overlap: float | None = None
     refine_passes: int = 0  # stage two again on crops centred on its own centers
     box_channel: bool = False  # stage two takes the box as a fourth input channel
 
@@ -221,29 +219,9 @@ def vote_in_crop(
     return None if vote is None else detection_of(vote, image_hw, obj_id)
 
 
-def mask_overlap(first: Detection, second: Detection) -> float:
-    """The share of the smaller of two detections' masks that the other covers, in [0, 1]; 1
-    when either has no mask (nothing says they are two parts)."""
-    if first.mask is None or second.mask is None:
-        return 1.0
-    boxes = np.stack([first.bbox_xywh, second.bbox_xywh])
-    x0, y0 = np.floor(boxes[:, :2].min(0)).astype(int)
-    x1, y1 = np.ceil((boxes[:, :2] + boxes[:, 2:]).max(0)).astype(int)
-    x0, y0 = max(x0, 0), max(y0, 0)
-    a = first.mask[y0:y1, x0:x1]
-    b = second.mask[y0:y1, x0:x1]
-    smaller = min(int(a.sum()), int(b.sum()))
-    return float((a & b).sum()) / smaller if smaller else 1.0
-
-
-def suppress_duplicates(
-    dets: list[Detection], factor: float, min_mask_overlap: float | None = None
-) -> list[Detection]:
+def suppress_duplicates(dets: list[Detection], factor: float) -> list[Detection]:
     """Of same-class detections whose centers lie closer than ``factor`` x the smaller box's
-    longer side, the best scored (two peaks of one part). With ``min_mask_overlap``, two such
-    detections are one part only where their masks also overlap by that share of the smaller
-    (:func:`mask_overlap`): in a pile two parts' origins can project close together, and stage
-    two then labels each crop's own part."""
+    longer side, the best scored (two peaks of one part)."""
     kept: list[Detection] = []
     for d in sorted(dets, key=lambda d: -d.score):
         side = d.bbox_xywh[2:].max()
@@ -251,7 +229,6 @@ def suppress_duplicates(
             k.obj_id == d.obj_id
             and np.linalg.norm(k.center_uv - d.center_uv)
             < factor * min(side, k.bbox_xywh[2:].max())
-            and (min_mask_overlap is None or mask_overlap(k, d) >= min_mask_overlap)
             for k in kept
         ):
             continue

@@ -133,30 +133,6 @@ def test_crops_of_boxes_and_duplicates(view):
     assert [d.score for d in kept] == [0.9, 0.4]
 
 
-def test_close_centres_are_one_part_only_where_the_masks_say_so():
-    from posefuse.estimator.frontend.detection import Detection
-    from posefuse.estimator.frontend.two_stage import mask_overlap
-
-    def det(x0, x1, score, centre_x=30.0):
-        mask = np.zeros((40, 80), bool)
-        mask[10:30, x0:x1] = True
-        return Detection(1, [x0, 10, x1 - x0, 20], [centre_x, 20], np.eye(2), mask, score)
-
-    left, right = det(10, 30, 0.9, 30.0), det(31, 51, 0.8, 32.0)  # touching, no shared pixel
-    same = det(12, 32, 0.7, 31.0)  # 18 of its 20 columns are the left one's
-    assert mask_overlap(left, right) == 0.0
-    assert mask_overlap(left, same) == pytest.approx(0.9)
-    assert mask_overlap(left, dataclasses.replace(same, mask=None)) == 1.0
-    # by the centres alone all three are one part
-    assert [d.score for d in suppress_duplicates([left, right, same], 0.3)] == [0.9]
-    # with the masks, the part beside it stays and the second look at the same part goes
-    kept = suppress_duplicates([same, right, left], 0.3, min_mask_overlap=0.5)
-    assert [d.score for d in kept] == [0.9, 0.8]
-    # centres far apart are two parts whatever the masks
-    far = dataclasses.replace(same, center_uv=np.array([60.0, 20]))
-    assert len(suppress_duplicates([left, far], 0.3, min_mask_overlap=0.5)) == 2
-
-
 def test_the_box_channel_marks_the_crop_pixels_inside_the_box(view):
     rgb, _, small, rows = view
     heat, _, box, _ = det_targets(rows, 0.5, (0, 0), (small.shape[0] // 4, small.shape[1] // 4), 5)
