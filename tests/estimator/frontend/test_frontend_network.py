@@ -303,6 +303,36 @@ def test_the_misses_by_stage_add_up_to_what_the_score_misses(full_res_dataset, r
         score_frontend(dataset, lambda v: [], [], any_class=True, obj_id=1)
 
 
+def test_stage_two_on_each_parts_own_box_places_the_parts_of_the_shipped_model(
+    full_res_dataset, robi_catalog, capsys
+):
+    """bench.frontend_misses --true-boxes: one row per part more than 75% visible, in the
+    fates' order; handed the true boxes, the shipped model places its own parts within 15 px,
+    and the command prints the table by part type."""
+    from posefuse.bench.frontend_misses import main, true_box_errors, view_fates
+
+    dataset = load_dataset(full_res_dataset)
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    rows, fates = [], []
+    for view in dataset.views():
+        image = dataset.scene(view.scene_id).load_rgb(view.im_id)
+        view_rows = true_box_errors(frontend, image, view)
+        view_fate_rows = view_fates(frontend, image, view)[2]
+        assert [r.obj_id for r in view_rows] == [r.obj_id for r in view_fate_rows]
+        rows += view_rows
+        fates += view_fate_rows
+    assert len(rows) >= 5
+    within = [r.error is not None and r.error <= 15.0 for r in rows]
+    assert np.mean(within) >= 0.8
+    assert all(r.side_px == max(f.bbox_visib[2:]) for r, f in zip(rows, fates, strict=True))
+    assert main(["--dataset", str(full_res_dataset), "--true-boxes", "--by-object"]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("stage two on each part's own box") :]
+    assert f"| all | {len(rows)} |" in table
+    for obj_id in {r.obj_id for r in rows}:
+        assert f"| {robi_catalog[obj_id].name} |" in table
+
+
 def test_a_part_stage_one_scored_below_its_threshold_is_told_from_one_it_never_saw(
     full_res_dataset, robi_catalog
 ):
