@@ -354,3 +354,73 @@ def test_class_balanced_sampling_draws_each_class_by_its_weight(view):
     det = BatchConfig(det_batch=16, on_part=1.0, class_weights=(0.0, 1.0, 0.0, 0.0, 0.0))
     _, heat, _, _, _ = detector_batch(ts_small, [rows], 5, det, np.random.default_rng(0))
     assert (heat[:, 1].reshape(16, -1).max(1) == 1.0).all()
+
+
+@pytest.mark.parametrize("axis", [None, 0, 1])
+def test_dense_box_targets_decode_to_the_part_from_every_cell_they_teach(view, axis):
+    """``dense_box``: the box target at every cell around a peak decodes, by the front end's own
+    decoder, to the visible box of a part, so a peak off a large part's centre still gives its
+    box; the heatmaps and the peaks' own targets are those of before, each part's weight is at
+    most 2 (its peak 1), and a flipped sample keeps all of it exact."""
+    _, _, small, rows = view
+    scale = 0.5
+    h, w = small.shape[0] // 4, small.shape[1] // 4
+    plain = det_targets(rows, scale, (0, 0), (h, w), 5)
+    dense = det_targets(rows, scale, (0, 0), (h, w), 5, dense_box=True)
+    assert np.array_equal(plain[0], dense[0]) and np.array_equal(plain[1], dense[1])
+    peaks = plain[3] > 0
+    assert np.array_equal(plain[2][:, peaks], dense[2][:, peaks])
+    assert np.array_equal(dense[3][peaks], plain[3][peaks])
+    positives = rows[rows[:, 9] >= 0.3]
+    taught = dense[3] > 0
+    assert taught.sum() > 3 * peaks.sum()  # cells around the peaks are taught too
+    assert peaks.sum() < dense[3].sum() <= 2 * peaks.sum() + 1e-4
+    image = small
+    heat, weight, box, box_mask = dense
+    if axis is not None:
+        image, heat, weight, box, box_mask = flip_detector_sample(
+            small, heat, weight, box, box_mask, axis
+        )
+        taught = box_mask > 0
+    # every taught cell as a peak of one class: the decoder reads each cell's box
+    every = np.where(taught, 1.0, 0.0)[None].astype(np.float32)
+    config = TwoStageConfig(min_score=0.99, max_boxes=100_000)
+    boxes = decode_boxes(np.concatenate([every, box], 0), scale, config)
+    assert len(boxes) == taught.sum()
+    truth = np.stack(
+        [
+            (positives[:, 5] + positives[:, 7]) / 2 * scale - 0.5,
+            (positives[:, 6] + positives[:, 8]) / 2 * scale - 0.5,
+        ],
+        1,
+    )
+    if axis is not None:
+        truth[:, 1 - axis] = image.shape[axis] - 1 - truth[:, 1 - axis]
+    for b in boxes:
+        center_in = (b.center + 0.5) * scale - 0.5
+        d = np.linalg.norm(truth - center_in, axis=1)
+        j = int(np.argmin(d))
+        assert d[j] < 0.3
+        size = positives[j, 7:9] - positives[j, 5:7]
+        assert np.allclose(b.size, size, rtol=0.02, atol=1.0)
+
+
+def test_detector_batches_with_dense_box_draw_the_same_crops_and_teach_around_the_peaks(view):
+    from types import SimpleNamespace
+
+    from posefuse.sim.train_targets import detector_batch
+
+    _, _, small, rows = view
+    ts = SimpleNamespace(small_rgb=small[None], n_views=1, meta={"spec": {"small_scale": 0.5}})
+    one = BatchConfig(det_batch=8, dihedral=True)
+    a = detector_batch(ts, [rows], 5, one, np.random.default_rng(4))
+    b = detector_batch(
+        ts, [rows], 5, dataclasses.replace(one, dense_box=True), np.random.default_rng(4)
+    )
+    assert all(np.array_equal(x, y) for x, y in zip(a[:3], b[:3], strict=True))
+    peaks = a[4] > 0
+    assert np.array_equal(
+        a[3].transpose(1, 0, 2, 3)[:, peaks], b[3].transpose(1, 0, 2, 3)[:, peaks]
+    )
+    assert np.array_equal(a[4][peaks], b[4][peaks])
+    assert (b[4] > 0).sum() > 3 * peaks.sum() > 0
