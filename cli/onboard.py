@@ -55,7 +55,6 @@ def _cmd_onboard(args: argparse.Namespace) -> int:
         frozen_backbones=args.frozen_backbones,
         scale_by_size=args.scale_by_size,
         class_balanced=args.class_balanced,
-        dense_box=args.dense_box,
     )
     manifest = onboard(args.mesh, args.out, config)
     _write_demo(Path(args.out))
@@ -165,13 +164,6 @@ def register(subparsers) -> None:
         action="store_true",
         help="draw each part type's training crops in inverse proportion to its share of the "
         "training renders' parts (an experiment; default: every part alike)",
-    )
-    p.add_argument(
-        "--dense-box",
-        action="store_true",
-        help="teach stage one's box at every cell near a part's heatmap peak, each cell the "
-        "offset to the box centre, so that a peak off a large part's centre still gives its "
-        "box (an experiment; default: at the peak's cell alone, as CenterNet)",
     )
     add_real_camera_options(p)
     p.add_argument("--views", type=int, default=6, help="views per training scene")

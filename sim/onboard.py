@@ -107,8 +107,6 @@ class OnboardConfig:
     scale_by_size: bool = False
     # class-balanced sampling in the fine-tune (TrainConfig.class_balanced)
     class_balanced: bool = False
-    # stage one's box taught around each peak in the fine-tune (TrainConfig.dense_box)
-    dense_box: bool = False
 
 
 class Stages:
@@ -260,7 +258,6 @@ def onboard(paths: list[str], out: str | Path, config: OnboardConfig, echo=print
             "--frozen-backbones": config.frozen_backbones,
             "--scale-by-size": config.scale_by_size,
             "--class-balanced": config.class_balanced,
-            "--dense-box": config.dense_box,
         }
         given = [flag for flag, on in training_only.items() if on]
         if config.steps == 0 and given:
@@ -481,7 +478,6 @@ def _train(
                 tune_min_score=True,
                 class_scale_factors=factors,
                 class_balanced=config.class_balanced,
-                dense_box=config.dense_box,
             ),
         )
     # what the validation still needs once its scenes are rendered: both passes over its views
@@ -521,7 +517,6 @@ def _train(
         frozen_backbones=config.frozen_backbones,
         class_scale_factors=factors,
         class_balanced=config.class_balanced,
-        dense_box=config.dense_box,
     )
     return train(catalog_dir, model_path, train_config)
 

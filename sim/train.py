@@ -134,8 +134,6 @@ class TrainConfig:
     # class-balanced sampling: a class's parts are drawn (detector crops' centre parts,
     # stage-two crops) in inverse proportion to its share of the training set's parts
     class_balanced: bool = False
-    # stage one's box taught around each peak, not at its cell alone (BatchConfig.dense_box)
-    dense_box: bool = False
     deadline: float | None = None  # wall-clock time (time.time()) the training loop must end by
     data_dir: str | None = None  # where rendered sets live (default ~/.cache/posefuse/train)
     checkpoint: str | None = None  # where the resumable checkpoint goes
@@ -246,7 +244,6 @@ _STREAM_FIELDS = (
     "frozen_backbones",
     "class_scale_factors",
     "class_balanced",
-    "dense_box",
 )
 
 
@@ -263,7 +260,6 @@ _OPTIONAL_STREAM_FIELDS = (
     "frozen_backbones",
     "class_scale_factors",
     "class_balanced",
-    "dense_box",
 )
 
 
@@ -746,7 +742,6 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
             frozen_backbones=bool(stored.get("frozen_backbones", False)),
             class_scale_factors=tuple(float(f) for f in stored.get("class_scale_factors", ())),
             class_balanced=bool(stored.get("class_balanced", False)),
-            dense_box=bool(stored.get("dense_box", False)),
         )
         if config.vote_loss is None:
             config = dataclasses.replace(config, vote_loss=float(stored.get("vote_loss", 0.0)))
@@ -832,7 +827,6 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
         class_weights=class_weights(ts.instances[candidates, 2], n_classes)
         if config.class_balanced
         else (),
-        dense_box=config.dense_box,
     )
     start = time.time()
     deadline = start + config.minutes * 60

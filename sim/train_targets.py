@@ -64,10 +64,6 @@ class BatchConfig:
     # a stage-two crop's part are drawn (class-balanced sampling: the inverse of each class's
     # share of the training set's parts); empty: every part alike
     class_weights: tuple[float, ...] = ()
-    # stage one's box size and centre offset taught at every cell within two sigmas of a part's
-    # heatmap peak (each cell the offset to the box centre), not at the peak's cell alone: a
-    # peak off the centre of a large part still decodes to its box (see ``det_targets``)
-    dense_box: bool = False
 
 
 def det_targets(
@@ -77,7 +73,6 @@ def det_targets(
     grid_hw: tuple[int, int],
     n_classes: int,
     taught: np.ndarray | None = None,
-    dense_box: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """CenterNet targets of one detector crop.
 
@@ -88,22 +83,16 @@ def det_targets(
         grid_hw: (h, w) output cells of the crop.
         taught: (C,) bool, the classes taught in this crop (None: all); the others' heatmaps
             are weighted 0 everywhere and their parts give no box target.
-        dense_box: the box target also at every cell within two sigmas of each peak, its
-            offset the (x, y) cells from that cell to the box centre; those cells share a
-            weight of 1 by their heatmap target, beside the peak's 1. A cell two parts
-            reach is the part's whose target is higher there.
     Returns:
         heat: (C, h, w) float32 target in [0, 1]; weight: (C, h, w) float32 (0: ignored);
         box: (4, h, w) float32 log width, log height (input pixels), offset x, y (cells);
-        box_mask: (h, w) float32, the box target's weight: 1 at the positive peaks (and,
-            with ``dense_box``, less around them).
+        box_mask: (h, w) float32, 1 at the positive peaks.
     """
     h, w = grid_hw
     heat = np.zeros((n_classes, h, w), np.float32)
     weight = np.ones((n_classes, h, w), np.float32)
     box = np.zeros((4, h, w), np.float32)
     box_mask = np.zeros((h, w), np.float32)
-    owner_g = np.zeros((h, w), np.float32)  # dense_box: the heatmap target of a cell's part
     ox, oy = origin_xy
     if taught is not None:
         weight[~np.asarray(taught, bool)] = 0.0
@@ -129,18 +118,8 @@ def det_targets(
         yy, xx = np.mgrid[ya:yb, xa:xb]
         g = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma**2)).astype(np.float32)
         np.maximum(heat[cls - 1, ya:yb, xa:xb], g, out=heat[cls - 1, ya:yb, xa:xb])
-        if dense_box:
-            near = (g >= np.exp(-2.0)) & (g > owner_g[ya:yb, xa:xb])
-            near[cy - ya, cx - xa] = False
-            if near.any():
-                ys, xs = yy[near], xx[near]
-                box[0, ys, xs], box[1, ys, xs] = np.log(bw), np.log(bh)
-                box[2, ys, xs], box[3, ys, xs] = gx - xs, gy - ys
-                box_mask[ys, xs] = g[near] / g[near].sum()
-                owner_g[ys, xs] = g[near]
         box[:, cy, cx] = (np.log(bw), np.log(bh), gx - cx, gy - cy)
         box_mask[cy, cx] = 1.0
-        owner_g[cy, cx] = 2.0  # a peak's cell is its own
     return heat, weight, box, box_mask
 
 
@@ -251,13 +230,7 @@ def detector_batch(ts, view_rows, n_classes: int, config: BatchConfig, rng: np.r
             alpha = alpha[y0 : y0 + ch, x0 : x0 + cw]
             image = paste_on_clutter(np.ascontiguousarray(image), alpha, rng, config.backgrounds)
         heat, weight, box, box_mask = det_targets(
-            rows,
-            s,
-            (x0, y0),
-            (ch // DET_STRIDE, cw // DET_STRIDE),
-            n_classes,
-            taught,
-            config.dense_box,
+            rows, s, (x0, y0), (ch // DET_STRIDE, cw // DET_STRIDE), n_classes, taught
         )
         sample = (image, heat, weight, box, box_mask)
         if rng.random() < 0.5:  # a mirrored bin is as plausible a bin
