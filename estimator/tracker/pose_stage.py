@@ -48,6 +48,7 @@ from posefuse.estimator.verification.verify import (
     refinement_reach_deg,
     reweight,
     score_hypotheses,
+    surface_moves,
     verify,
 )
 
@@ -130,12 +131,23 @@ class PoseStage:
                 model.points, model.diameter, sym, axes, cfg.near_frac, cfg.max_variants
             )
             near = model.near_symmetries
-            self.unasked[obj_id] = near_symmetry_turns(
-                np.array([g.axis for g in near]).reshape(-1, 3),
-                np.array([g.order for g in near], int),
-                sym,
-                axes,
-                self.variants[obj_id],
+            variants = self.variants[obj_id]
+            judged = np.zeros(len(variants), bool)
+            if cfg.turns.variants_frac > 0 and len(variants):
+                judged = (
+                    surface_moves(model.points, model.diameter, variants) <= cfg.turns.variants_frac
+                )
+            self.unasked[obj_id] = np.concatenate(
+                [
+                    near_symmetry_turns(
+                        np.array([g.axis for g in near]).reshape(-1, 3),
+                        np.array([g.order for g in near], int),
+                        sym,
+                        axes,
+                        variants[~judged],
+                    ),
+                    variants[judged],
+                ]
             )
             self.distinct[obj_id] = (
                 turn_judge.distinct_edges(

@@ -65,10 +65,20 @@ class TurnJudgeConfig:
     # (0.25, 0.5, 1: 21, 20, 19 of 26 against 22 of 26 at 0.1 and without the judge)
     # (docs/lab/2026-12-06-gear-turns-judged.md)
     effective_share: float = 0.1
+    # the verification's own variants (its half turns, :func:`verify.near_symmetries`) that
+    # move the part's surface by at most this share of the diameter (95th percentile,
+    # :func:`verify.surface_moves`) are judged too, as near-symmetric turns: a tee fitting whose
+    # two ends differ only in their collars. 0.06 is the verification's own bound for a turn
+    # that nearly repeats the part (``VerificationConfig.near_frac``); no part of the shipped
+    # catalog has a half turn that close (the nearest, the chrome screw's, moves 0.08 d). 0:
+    # only the turns of the catalog's near-symmetric groups
+    # (docs/lab/2026-12-07-dense-box-targets-and-track-crops-for-large-parts.md)
+    variants_frac: float = 0.06
 
     def __post_init__(self) -> None:
         if (
-            not 0.0 < self.distinct_frac < 1.0
+            not 0.0 <= self.variants_frac < 1.0
+            or not 0.0 < self.distinct_frac < 1.0
             or self.dense_points < 1
             or self.max_distinct < 1
             or self.min_samples < 1

@@ -185,3 +185,81 @@ def test_a_turn_that_shows_too_few_samples_never_wins_and_stays_open():
     # the alternatives are the turns in order: the quarter turn seen three times first
     assert np.allclose(judged.alternatives, QUARTERS)
     assert judged.odds[0] == 1.0 and np.all(judged.odds[1:] < 1.0)
+
+
+def _collared_rod():
+    """A rod along x (80 mm, radius 10 mm) with a collar at each end, one of radius 16 mm and
+    one of 13 mm: turned end over end it is almost, not quite, itself (a tee's two ends)."""
+    from posefuse.estimator.core.objects import make_model
+    from posefuse.estimator.core.symmetry import ContinuousSymmetry
+
+    body = trimesh.creation.cylinder(radius=0.01, height=0.08, sections=48)
+    parts = [body]
+    for radius, z in ((0.016, 0.034), (0.013, -0.034)):
+        collar = trimesh.creation.cylinder(radius=radius, height=0.006, sections=48)
+        collar.apply_translation([0.0, 0.0, z])
+        parts.append(collar)
+    mesh = trimesh.util.concatenate(parts)
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    x = ContinuousSymmetry((1.0, 0.0, 0.0))
+    return make_model(1, "collared_rod", mesh, np.zeros((0, 4, 4)), (x,), detect=False)
+
+
+def test_how_far_a_turn_moves_the_surface():
+    from posefuse.estimator.verification.verify import surface_moves
+
+    model = _collared_rod()
+    about_x = so3_exp(np.array([0.7, 0.0, 0.0]))  # the rod's own symmetry
+    end_over_end = so3_exp(np.pi * np.array([0.0, 1.0, 0.0]))
+    turns = np.stack([np.eye(3), about_x, end_over_end])
+    moves = surface_moves(model.points, model.diameter, turns)
+    assert moves[0] < 1e-12
+    # a symmetry moves it by the samples' spacing (about 2 mm), end over end by the collars' 3 mm
+    assert moves[1] < 0.03 < 0.05 < moves[2] < 0.1
+
+
+def test_the_verifications_near_variants_are_judged_as_turns_from_variants_frac():
+    """``TurnJudgeConfig.variants_frac``: the verification's own variant that moves the part's
+    surface by no more than it (the rod turned end over end) is judged by the edges that tell
+    the two ends apart, beside the catalog's near-symmetric turns; 0 or a share below its move
+    (the default 0.06 here) leaves the judge as it was."""
+    from posefuse.estimator.core.objects import Catalog
+    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.tracker.pose_stage import PoseStage
+
+    model = _collared_rod()
+    for frac, judged in ((0.0, False), (0.06, False), (0.08, True)):
+        config = TrackerConfig().with_verification_settings({"turns.variants_frac": frac})
+        stage = PoseStage(Catalog([model]), config)
+        _, variants = stage.model_edges(1)
+        assert len(variants) == 1  # end over end (the turns about x are symmetries)
+        if not judged:
+            assert len(stage.unasked[1]) == 0 and stage.distinct[1] is None
+            continue
+        np.testing.assert_allclose(stage.unasked[1], variants)
+        distinct = stage.distinct[1]
+        assert distinct is not None and len(distinct.points) > 20
+        # the samples that tell the ends apart are the collars'
+        assert np.all(np.abs(distinct.points[:, 0]) > 0.025)
+    with pytest.raises(ValueError, match="turns"):
+        TrackerConfig().with_verification_settings({"turns.variants_frac": -0.1})
+
+
+def test_the_shipped_catalog_has_no_variant_near_enough_to_be_judged():
+    """No half turn of the shipped catalog's parts moves its surface by 0.06 d or less, so its
+    turn judge asks what it asked before ``variants_frac``: its results are unchanged."""
+    from posefuse.estimator.core.objects import load_catalog
+    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.estimator.tracker.pose_stage import PoseStage
+    from posefuse.service.resources import DEFAULT_CATALOG
+
+    catalog = load_catalog(DEFAULT_CATALOG)
+    now = PoseStage(catalog, TrackerConfig())
+    before = PoseStage(
+        catalog, TrackerConfig().with_verification_settings({"turns.variants_frac": 0})
+    )
+    assert TrackerConfig().verification.turns.variants_frac == 0.06
+    for obj_id in catalog:
+        now.model_edges(obj_id)
+        before.model_edges(obj_id)
+        assert np.array_equal(now.unasked[obj_id], before.unasked[obj_id])
