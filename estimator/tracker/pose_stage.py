@@ -48,7 +48,6 @@ from posefuse.estimator.verification.verify import (
     refinement_reach_deg,
     reweight,
     score_hypotheses,
-    surface_moves,
     verify,
 )
 
@@ -135,7 +134,8 @@ class PoseStage:
             judged = np.zeros(len(variants), bool)
             if cfg.turns.variants_frac > 0 and len(variants):
                 judged = (
-                    surface_moves(model.points, model.diameter, variants) <= cfg.turns.variants_frac
+                    turn_judge.surface_moves(model.points, model.diameter, variants)
+                    <= cfg.turns.variants_frac
                 )
             self.unasked[obj_id] = np.concatenate(
                 [

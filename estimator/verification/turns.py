@@ -45,6 +45,7 @@ __all__ = [
     "TurnScoreCache",
     "distinct_edges",
     "judge_turns",
+    "surface_moves",
 ]
 
 
@@ -67,7 +68,7 @@ class TurnJudgeConfig:
     effective_share: float = 0.1
     # the verification's own variants (its half turns, :func:`verify.near_symmetries`) that
     # move the part's surface by at most this share of the diameter (95th percentile,
-    # :func:`verify.surface_moves`) are judged too, as near-symmetric turns: a tee fitting whose
+    # :func:`surface_moves`) are judged too, as near-symmetric turns: a tee fitting whose
     # two ends differ only in their collars. 0.06 is the verification's own bound for a turn
     # that nearly repeats the part (``VerificationConfig.near_frac``); no part of the shipped
     # catalog has a half turn that close (the nearest, the chrome screw's, moves 0.08 d). 0:
@@ -292,3 +293,23 @@ def _view_sums(
     out[1] = np.bincount(slot, weights=d, minlength=V * H)
     out[2] = np.bincount(slot, weights=d * d, minlength=V * H)
     return out.reshape(3, V, H).transpose(1, 0, 2)
+
+
+def surface_moves(points: np.ndarray, diameter: float, turns: np.ndarray) -> np.ndarray:
+    """How far each object-frame turn about the samples' centroid moves the part's surface: the
+    95th percentile of the turned samples' distances to the nearest sample, a share of the
+    diameter (the measure :func:`verify.near_symmetries` keeps a turn by).
+
+    Args:
+        points: (N, 3) surface samples, object frame; turns: (M, 3, 3).
+    Returns:
+        (M,) shares of the diameter.
+    """
+    tree = cKDTree(points)
+    center = points.mean(axis=0)
+    rel = points - center
+    out = np.empty(len(turns))
+    for i, R in enumerate(np.asarray(turns, float).reshape(-1, 3, 3)):
+        d, _ = tree.query(rel @ R.T + center)
+        out[i] = float(np.percentile(d, 95)) / diameter
+    return out

@@ -49,7 +49,6 @@ __all__ = [
     "lead_hypothesis",
     "near_symmetries",
     "near_symmetry_turns",
-    "surface_moves",
     "refinement_reach_deg",
     "reweight",
     "score_hypotheses",
@@ -344,26 +343,6 @@ def near_symmetries(
         if len(kept) >= max_variants:
             break
     return np.array(kept).reshape(-1, 3, 3)
-
-
-def surface_moves(points: np.ndarray, diameter: float, turns: np.ndarray) -> np.ndarray:
-    """How far each object-frame turn about the samples' centroid moves the part's surface: the
-    95th percentile of the turned samples' distances to the nearest sample, a share of the
-    diameter (the measure :func:`near_symmetries` keeps a turn by).
-
-    Args:
-        points: (N, 3) surface samples, object frame; turns: (M, 3, 3).
-    Returns:
-        (M,) shares of the diameter.
-    """
-    tree = cKDTree(points)
-    center = points.mean(axis=0)
-    rel = points - center
-    out = np.empty(len(turns))
-    for i, R in enumerate(np.asarray(turns, float).reshape(-1, 3, 3)):
-        d, _ = tree.query(rel @ R.T + center)
-        out[i] = float(np.percentile(d, 95)) / diameter
-    return out
 
 
 def near_symmetry_turns(

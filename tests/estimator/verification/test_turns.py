@@ -206,7 +206,7 @@ def _collared_rod():
 
 
 def test_how_far_a_turn_moves_the_surface():
-    from posefuse.estimator.verification.verify import surface_moves
+    from posefuse.estimator.verification.turns import surface_moves
 
     model = _collared_rod()
     about_x = so3_exp(np.array([0.7, 0.0, 0.0]))  # the rod's own symmetry
