@@ -73,7 +73,7 @@ class TurnJudgeConfig:
     # that nearly repeats the part (``VerificationConfig.near_frac``); no part of the shipped
     # catalog has a half turn that close (the nearest, the chrome screw's, moves 0.08 d). 0:
     # only the turns of the catalog's near-symmetric groups
-    # (docs/lab/2026-12-07-dense-box-targets-and-track-crops-for-large-parts.md)
+    # (docs/lab/2026-12-07-near-flips-judged-by-their-distinct-edges.md)
     variants_frac: float = 0.06
 
     def __post_init__(self) -> None:

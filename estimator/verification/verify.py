@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from posefuse.estimator.core.geometry import rotation_angle, so3_exp
 from posefuse.estimator.rotation.mixture import closest_equivalents
@@ -35,7 +34,7 @@ from posefuse.estimator.verification.model_edges import (
     project_shown,
     silhouette_misses,
 )
-from posefuse.estimator.verification.turns import TurnJudgeConfig
+from posefuse.estimator.verification.turns import TurnJudgeConfig, surface_moves
 
 __all__ = [
     "ScoreCache",
@@ -316,19 +315,14 @@ def near_symmetries(
     Returns:
         (M, 3, 3) rotations, M <= max_variants, the identity excluded.
     """
-    tree = cKDTree(points)
-    center = points.mean(axis=0)
-    rel = points - center
     cands: list[tuple[float, np.ndarray]] = []
     for axis in np.eye(3):
         cands.append((-1.0, so3_exp(np.pi * axis)))  # half turns first, whatever they score
-        for n in range(3, 13):
-            R = so3_exp(2 * np.pi / n * axis)
-            d, _ = tree.query(rel @ R.T + center)
-            err = float(np.percentile(d, 95)) / diameter
-            if err <= near_frac:
-                cands.append((err, R))
-                break
+        turns = np.stack([so3_exp(2 * np.pi / n * axis) for n in range(3, 13)])
+        moves = surface_moves(points, diameter, turns)
+        near = np.flatnonzero(moves <= near_frac)
+        if len(near):  # the first n that nearly repeats the part
+            cands.append((float(moves[near[0]]), turns[near[0]]))
     cands.sort(key=lambda c: c[0])
     kept: list[np.ndarray] = []
     for _, R in cands:
