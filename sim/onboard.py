@@ -45,6 +45,7 @@ from posefuse.sim.onboard_validation import (
     VALIDATION_S_PER_VIEW,
     render_validations,
     validate,
+    validation_seconds,
 )
 
 MANIFEST = "parts.json"
@@ -480,7 +481,8 @@ def _train(
                 class_balanced=config.class_balanced,
             ),
         )
-    # what the validation still needs once its scenes are rendered: both passes over its views
+    # what the validation still needs once its scenes are rendered: both passes over its views,
+    # a first guess to size the training's renders; the training measures it before its loop
     reserve = sum(r.views for r in rendered.values()) * VALIDATION_S_PER_VIEW
     usable = stages.deadline - reserve - time.time()
     if usable < 30:
@@ -507,7 +509,7 @@ def _train(
         workers=config.workers,
         seed=config.seed,
         robi_fraction=config.robi_fraction,
-        deadline=stages.deadline - reserve,
+        deadline=stages.deadline,
         clock_schedule=True,  # however many steps the minutes hold, the run ends annealed
         tune_min_score=True,
         init=init,
@@ -518,7 +520,12 @@ def _train(
         class_scale_factors=factors,
         class_balanced=config.class_balanced,
     )
-    return train(catalog_dir, model_path, train_config)
+    return train(
+        catalog_dir,
+        model_path,
+        train_config,
+        after=lambda path: validation_seconds(catalog_dir.parent, path, config, rendered),
+    )
 
 
 def pilot_compose(catalog_dir: Path, views: int) -> float:

@@ -88,47 +88,82 @@ def render_validations(
     return rendered
 
 
+def evaluate_profile(root: Path, model_path: Path, config, scene_ids=None, setup=None):
+    """The network front end's score and the estimator's run on one profile's validation
+    renders in ``root`` (``scene_ids``: those scenes alone); returns (dataset, network, score,
+    run). ``setup``: a callable told when the loading (model, templates) is done."""
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.frontend_metrics import score_frontend
+    from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
+
+    dataset = load_dataset(root)
+    network = NetworkFrontend(model_path, dataset.catalog, seed=config.seed)
+
+    def detect(view):
+        return network.detect(dataset.scene(view.scene_id).load_rgb(view.im_id))
+
+    shared = MultiViewEstimator(dataset.catalog)
+    shared.prepare_templates(workers=config.workers)
+    if setup is not None:
+        setup()
+    views = [v for v in dataset.views() if scene_ids is None or v.scene_id in scene_ids]
+    # a generalist's detections are "a part", of any class: the tracker names the parts
+    score = score_frontend(dataset, detect, views, any_class=network.card.agnostic)
+    run = run_dataset(
+        dataset,
+        LabelledNetworkFrontend(dataset, network),
+        scene_ids=None if scene_ids is None else tuple(scene_ids),
+        show_progress=False,
+        rotation=True,
+        estimator_factory=lambda: MultiViewEstimator(
+            dataset.catalog,
+            TrackerConfig().with_card(network.card.verification),
+            banks=shared.banks(),
+        ),
+    )
+    return dataset, network, score, run
+
+
+def validation_seconds(
+    out: Path, model_path: Path, config, rendered: dict, clock=time.perf_counter
+) -> float:
+    """How long :func:`validate` will take here: the first scene of each profile evaluated as
+    the validation will (:func:`evaluate_profile`) with ``model_path``, a model of the part
+    set's architecture (the training's initial one), timed: its loading once and its scene's
+    work times the profile's scenes. VALIDATION_S_PER_VIEW is only the guess made before any
+    model exists, to size the renders; on a CPU half as fast as the one it was measured on the
+    validation took twice as long and the onboarding ran past its budget (docs/own-parts.md)."""
+    total = 0.0
+    for profile, r in rendered.items():
+        marks = [clock()]
+        evaluate_profile(
+            out / "validation" / profile,
+            model_path,
+            config,
+            scene_ids=(0,),
+            setup=lambda marks=marks: marks.append(clock()),
+        )
+        loading, scene = marks[1] - marks[0], clock() - marks[1]
+        total += loading + scene * r.scenes
+    return total
+
+
 def validate(
     out: Path, catalog: Catalog, model_path: Path, config, rendered: dict, echo=print
 ) -> dict:
     """Front-end recall/precision and ADD-sym at 4 and 8 views on the held-out renders of
     :func:`render_validations`."""
-    from posefuse.estimator.frontend.network import NetworkFrontend
-    from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
-    from posefuse.evaluation.dataset import load_dataset
-    from posefuse.evaluation.frontend_metrics import score_frontend
-    from posefuse.evaluation.run_dataset import (
-        LabelledNetworkFrontend,
-        right_pose_coverage,
-        run_dataset,
-    )
+    from posefuse.evaluation.run_dataset import right_pose_coverage
     from posefuse.evaluation.scores import evaluate
 
     figures = {}
     for profile, r in rendered.items():
         root = out / "validation" / profile
         n_scenes, scored, seed = r.scenes, r.scored, r.seed
-        dataset = load_dataset(root)
-        network = NetworkFrontend(model_path, dataset.catalog, seed=config.seed)
-
-        def detect(view, network=network, dataset=dataset):
-            image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-            return network.detect(image)
-
-        # a generalist's detections are "a part", of any class: the tracker names the parts
+        dataset, network, score, run = evaluate_profile(root, model_path, config)
         agnostic = network.card.agnostic
-        score = score_frontend(dataset, detect, list(dataset.views()), any_class=agnostic)
-        shared = MultiViewEstimator(dataset.catalog)
-        shared.prepare_templates(workers=config.workers)
-        run = run_dataset(
-            dataset,
-            LabelledNetworkFrontend(dataset, network),
-            show_progress=False,
-            rotation=True,
-            estimator_factory=lambda d=dataset, s=shared, n=network: MultiViewEstimator(
-                d.catalog, TrackerConfig().with_card(n.card.verification), banks=s.banks()
-            ),
-        )
         accuracy = {}
         for n in (4, 8):
             if run.targets.get(n):

@@ -700,8 +700,35 @@ def calibrate_by_score(
     ]
 
 
-def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) -> dict:
-    """Render (or reuse), train (or resume), export; returns the model card's dict."""
+def _finish_seconds(nets, model_path: Path, catalog, config: TrainConfig, val, after) -> dict:
+    """What follows a budgeted run's loop, timed on the initial model: the export, the passes
+    of the front end over the calibration renders (one for :func:`calibrate`; with
+    ``tune_min_score`` one per threshold and one for :func:`calibrate_by_score`), each timed
+    as one at the lowest threshold, and ``after(model_path)``. Seconds by name."""
+    t0 = time.perf_counter()
+    nets.det.eval(), nets.crop.eval()
+    nets.export(model_path, _card(catalog, config, model_path, 1.0, {}))
+    nets.train_mode()
+    kept = {"export": time.perf_counter() - t0}
+    t0 = time.perf_counter()
+    fe = NetworkFrontend(model_path, catalog, seed=config.seed)
+    # at the lowest threshold: the most stage-two crops a pass can have
+    fe.two_stage = dataclasses.replace(fe.two_stage, min_score=MIN_SCORE_CANDIDATES[0])
+    _val_matches(fe, val, catalog)
+    passes = 1 + (len(MIN_SCORE_CANDIDATES) + 1 if config.tune_min_score else 0)
+    kept["calibration"] = passes * (time.perf_counter() - t0)
+    if after is not None:
+        kept["validation"] = float(after(model_path))
+    return kept
+
+
+def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig, after=None) -> dict:
+    """Render (or reuse), train (or resume), export; returns the model card's dict.
+
+    A run with a ``config.deadline`` (onboarding's budget) ends its loop early by what follows
+    it, measured here before the loop on the initial model, exported to ``model_path``: the
+    export, the calibration passes over the calibration renders, and ``after(model_path)``,
+    the seconds the caller's own work after the run will take (its validation), if given."""
     import torch
 
     from posefuse.sim.core_share import CoreShare
@@ -831,7 +858,12 @@ def train(catalog_dir: str | Path, model_path: str | Path, config: TrainConfig) 
     start = time.time()
     deadline = start + config.minutes * 60
     if config.deadline is not None:
-        deadline = min(deadline, config.deadline)
+        kept = _finish_seconds(nets, model_path, catalog, config, val, after)
+        tqdm.write(
+            f"kept {sum(kept.values()):.0f} s of the deadline for what follows the loop "
+            f"(measured: {', '.join(f'{k} {v:.0f} s' for k, v in kept.items())})"
+        )
+        deadline = min(deadline, config.deadline - sum(kept.values()))
     last_ckpt = time.time()
     cpu_mark, wall_mark = time.process_time(), time.time()
     losses: list[dict] = []

@@ -127,3 +127,35 @@ def test_both_profiles_share_the_budget_and_a_short_one_says_what_would_fit(tmp_
     rendered = ov.render_validations(tmp_path / "n", None, chosen, None, notes.append, clock)
     assert all(r.scored["8"] == 50 for r in rendered.values())
     assert sum("note:" in n for n in notes) == 1
+
+
+def test_the_validation_is_timed_on_one_scene_of_each_profile(tmp_path, monkeypatch):
+    """What the training keeps back for the validation: each profile's loading once and its
+    first scene's work times its scenes, measured with the model it is given."""
+    clock = FakeClock()
+    asked = []
+
+    def evaluate(root, model_path, config, scene_ids=None, setup=None):
+        asked.append((Path(root).name, model_path, scene_ids))
+        clock.now += 3.0  # loading the model and the templates
+        setup()
+        clock.now += 10.0 if Path(root).name == "mixed" else 25.0  # the scene's views
+        return None
+
+    monkeypatch.setattr(ov, "evaluate_profile", evaluate)
+
+    def rendered(scenes):
+        return ov.RenderedValidation(7, scenes, scenes * 8, {"8": 0}, 1.0, False)
+
+    seconds = ov.validation_seconds(
+        tmp_path,
+        tmp_path / "init.onnx",
+        OnboardConfig(),
+        {"mixed": rendered(10), "robi": rendered(6)},
+        clock,
+    )
+    assert asked == [
+        ("mixed", tmp_path / "init.onnx", (0,)),
+        ("robi", tmp_path / "init.onnx", (0,)),
+    ]
+    assert seconds == 3.0 + 10 * 10.0 + 3.0 + 6 * 25.0

@@ -395,3 +395,27 @@ def test_frozen_backbones_keep_their_weights_and_statistics_while_the_heads_lear
         assert torch.equal(w_tuned[k], w_init[k]), k
     heads = [k for k in w_init if ".backbone." not in f".{k}" and w_init[k].is_floating_point()]
     assert sum(not torch.equal(w_tuned[k], w_init[k]) for k in heads) > 4
+
+
+def test_a_budgeted_run_keeps_back_what_follows_its_loop(tmp_path, capsys):
+    """With a deadline (onboarding's budget) the loop ends early by the export, the calibration
+    passes and the caller's own work after it, measured before the loop on the initial model:
+    told that its validation will take the whole budget, the run takes no step."""
+    import time
+
+    seen = []
+
+    def after(path):
+        seen.append((path, path.is_file(), path.with_name(path.stem + "_crop.onnx").is_file()))
+        return 3600.0  # the caller's validation needs an hour
+
+    model = tmp_path / "m" / "m.onnx"
+    config = _config(tmp_path, max_iterations=1000, deadline=time.time() + 1800.0)
+    card = train(DEFAULT_CATALOG, model, config, after=after)
+    assert seen == [(model, True, True)]  # asked once, with the initial model exported
+    assert card["training"]["steps"] == 0
+    out = capsys.readouterr()
+    assert "kept 36" in out.out + out.err and "validation 3600 s" in out.out + out.err
+    # without a deadline nothing is kept and nothing is asked
+    train(DEFAULT_CATALOG, tmp_path / "n" / "m.onnx", _config(tmp_path), after=after)
+    assert len(seen) == 1
