@@ -222,7 +222,7 @@ def test_the_verifications_near_variants_are_judged_as_turns_from_variants_frac(
     """``TurnJudgeConfig.variants_frac``: the verification's own variant that moves the part's
     surface by no more than it (the rod turned end over end) is judged by the edges that tell
     the two ends apart, beside the catalog's near-symmetric turns; 0 or a share below its move
-    (the default 0.06 here) leaves the judge as it was."""
+    (0.06 here) leaves the judge as it was."""
     from posefuse.estimator.core.objects import Catalog
     from posefuse.estimator.tracker import TrackerConfig
     from posefuse.estimator.tracker.pose_stage import PoseStage
@@ -245,9 +245,10 @@ def test_the_verifications_near_variants_are_judged_as_turns_from_variants_frac(
         TrackerConfig().with_verification_settings({"turns.variants_frac": -0.1})
 
 
-def test_the_shipped_catalog_has_no_variant_near_enough_to_be_judged():
-    """No half turn of the shipped catalog's parts moves its surface by 0.06 d or less, so its
-    turn judge asks what it asked before ``variants_frac``: its results are unchanged."""
+def test_of_the_shipped_catalog_only_the_chrome_screws_flip_is_judged():
+    """Of the shipped catalog's variants only the chrome screw's half turn end over end (0.082
+    d) moves its surface by 0.1 d or less: its turn judge asks that flip beside what it asked
+    before ``variants_frac``, and nothing else of the catalog changes."""
     from posefuse.estimator.core.objects import load_catalog
     from posefuse.estimator.tracker import TrackerConfig
     from posefuse.estimator.tracker.pose_stage import PoseStage
@@ -258,8 +259,16 @@ def test_the_shipped_catalog_has_no_variant_near_enough_to_be_judged():
     before = PoseStage(
         catalog, TrackerConfig().with_verification_settings({"turns.variants_frac": 0})
     )
-    assert TrackerConfig().verification.turns.variants_frac == 0.06
+    assert TrackerConfig().verification.turns.variants_frac == 0.1
+    changed = []
     for obj_id in catalog:
-        now.model_edges(obj_id)
+        _, variants = now.model_edges(obj_id)
         before.model_edges(obj_id)
-        assert np.array_equal(now.unasked[obj_id], before.unasked[obj_id])
+        if not np.array_equal(now.unasked[obj_id], before.unasked[obj_id]):
+            changed.append(catalog[obj_id].name)
+            # the flip is judged beside the turns asked before
+            np.testing.assert_array_equal(now.unasked[obj_id][:-1], before.unasked[obj_id])
+            flip = now.unasked[obj_id][-1]
+            assert any(np.allclose(flip, v) for v in variants)
+            assert np.degrees(np.arccos(np.clip((np.trace(flip) - 1) / 2, -1, 1))) > 179
+    assert changed == ["chrome_screw"]
