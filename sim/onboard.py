@@ -42,7 +42,7 @@ from posefuse.estimator.core.objects import (
 from posefuse.estimator.core.symmetry import detect_symmetries, symmetry_from_spec
 from posefuse.evaluation.eval_points import with_eval_points
 from posefuse.sim.onboard_validation import (
-    VALIDATION_S_PER_VIEW,
+    evaluation_s_per_view,
     render_validations,
     validate,
     validation_seconds,
@@ -483,7 +483,7 @@ def _train(
         )
     # what the validation still needs once its scenes are rendered: both passes over its views,
     # a first guess to size the training's renders; the training measures it before its loop
-    reserve = sum(r.views for r in rendered.values()) * VALIDATION_S_PER_VIEW
+    reserve = sum(r.views * evaluation_s_per_view(r.render_s, r.views) for r in rendered.values())
     usable = stages.deadline - reserve - time.time()
     if usable < 30:
         raise PosefuseError(

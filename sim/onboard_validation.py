@@ -25,6 +25,19 @@ MAX_HELD_SCENES = 40
 # tracker's run), what the training's deadline keeps back for the validation once its scenes
 # are rendered: the five meshes of ../shared/objects took 97 s for 184 views (0.53 s a view)
 VALIDATION_S_PER_VIEW = 0.7
+# ... and on a slower CPU, what the renders measured says: the evaluation of a view took 0.36
+# (AVX-512, 0.53 s against 1.49 s of rendering) and 0.39 (AVX2, 0.95 s against 2.45 s) of its
+# render's time on the five meshes; the guess is the larger of the two ways
+EVALUATION_PER_RENDER = 0.4
+
+
+def evaluation_s_per_view(render_s: float, views: int) -> float:
+    """The guessed seconds of the validation's evaluation a view, from ``render_s`` seconds of
+    rendering ``views`` views here (VALIDATION_S_PER_VIEW where nothing is rendered yet)."""
+    measured = EVALUATION_PER_RENDER * render_s / views if views > 0 else 0.0
+    return max(VALIDATION_S_PER_VIEW, measured)
+
+
 # the validation's scenes are rendered before the training, in rounds, until its target of
 # parts is scored or, within a budget, until they and their evaluation would take more than
 # VALIDATION_SHARE_MAX of what the catalog and templates leave (the rest trains); never below
@@ -64,7 +77,9 @@ def render_validations(
         seed = VALIDATION_SEED + config.seed * 10 + k
         limit = None
         if until is not None:
-            pending = sum(r.views for r in rendered.values()) * VALIDATION_S_PER_VIEW
+            pending = sum(
+                r.views * evaluation_s_per_view(r.render_s, r.views) for r in rendered.values()
+            )
             limit = until - pending
             if profile == "mixed":  # the piles get what the bins leave of the other half too
                 limit = clock() + (limit - clock()) / 2
@@ -77,7 +92,9 @@ def render_validations(
         extra = 0.0
         for r in short.values():
             rate = r.scored[str(config.held_views)] / r.scenes
-            per_scene = r.render_s / r.scenes + config.held_views * VALIDATION_S_PER_VIEW
+            per_scene = r.render_s / r.scenes + config.held_views * evaluation_s_per_view(
+                r.render_s, r.views
+            )
             extra += (config.held_instances / max(rate, 0.5) - r.scenes) * per_scene
         got = ", ".join(f"{p} {r.scored[str(config.held_views)]}" for p, r in short.items())
         more = np.ceil(config.minutes + extra / VALIDATION_SHARE_MAX / 60)
@@ -237,7 +254,7 @@ def render_validation(
     sized from the scenes so far), at most MAX_HELD_SCENES.
 
     With ``until`` (a ``clock`` time) the rounds also stop where the next scene and the
-    evaluation of every scene (VALIDATION_S_PER_VIEW a view) would end past it, but not below
+    evaluation of every scene (:func:`evaluation_s_per_view`) would end past it, but not below
     MIN_HELD_INSTANCES parts: the first round is a probe of PROBE_SCENES_PER_WORKER scenes a
     render process, which times this profile's scenes on these meshes."""
     from posefuse.sim.scenes import PROFILES
@@ -249,7 +266,6 @@ def render_validation(
     done, counts = 0, dict.fromkeys(checkpoints, 0)
     target = config.held_instances
     render_s, fitted = 0.0, False
-    evaluation = config.held_views * VALIDATION_S_PER_VIEW  # a scene's, once rendered
     while True:
         if config.held_scenes is not None:
             n = config.held_scenes - done
@@ -261,6 +277,10 @@ def render_validation(
                 if not done:
                     n = min(n, PROBE_SCENES_PER_WORKER * max(config.workers, 1))
                 else:
+                    # a scene's evaluation, once rendered
+                    evaluation = config.held_views * evaluation_s_per_view(
+                        render_s, done * config.held_views
+                    )
                     cost = render_s / done + evaluation
                     room = until - clock() - done * evaluation
                     fits = int(room // cost)

@@ -159,3 +159,23 @@ def test_the_validation_is_timed_on_one_scene_of_each_profile(tmp_path, monkeypa
         ("robi", tmp_path / "init.onnx", (0,)),
     ]
     assert seconds == 3.0 + 10 * 10.0 + 3.0 + 6 * 25.0
+
+
+def test_on_a_slow_cpu_the_evaluation_is_guessed_from_the_renders(tmp_path, monkeypatch):
+    """Renders four times slower than the fake of above (40 s a scene, 5 s a view): the
+    evaluation of a view is guessed at EVALUATION_PER_RENDER of its render's time (2 s, not
+    0.7), and fewer scenes fit the same room."""
+    from posefuse.sim import synth
+
+    assert ov.evaluation_s_per_view(0.0, 0) == ov.VALIDATION_S_PER_VIEW
+    assert ov.evaluation_s_per_view(80.0, 64) == ov.VALIDATION_S_PER_VIEW  # a fast CPU
+    assert ov.evaluation_s_per_view(320.0, 64) == ov.EVALUATION_PER_RENDER * 5.0
+    clock = FakeClock()
+    generate, calls = _fake_scenes([5] * 40, clock, seconds=40.0)
+    monkeypatch.setattr(synth, "generate_dataset", generate)
+    config = OnboardConfig(held_instances=100, held_views=8, workers=2)
+    evaluation = 8 * ov.EVALUATION_PER_RENDER * 5.0
+    until = clock.now + 8 * (40.0 + evaluation) + 1.0  # room for 8 scenes and their evaluation
+    r = ov.render_validation(None, tmp_path / "v", "mixed", 7, config, until, clock)
+    assert r.fitted and r.scenes == 8, calls  # at 0.7 s a view, 9 would have been rendered
+    assert clock.now + r.scenes * evaluation <= until
