@@ -224,6 +224,7 @@ def verification_settings(pairs: list[str] | None) -> dict[str, float | None]:
     numeric.update({f"refinement.{k}": t for k, t in _numeric_fields(RefineConfig).items()})
     numeric.update({f"turns.{k}": t for k, t in _numeric_fields(TurnJudgeConfig).items()})
     numeric["turns.enabled"] = _switch  # the judge has no ablation flag of its own
+    numeric["translation_shared_frac"] = float  # the tracker's, given by a card as these are
     out: dict[str, float | None] = {}
     for pair in pairs or ():
         key, sep, value = pair.partition("=")

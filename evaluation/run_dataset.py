@@ -325,6 +325,15 @@ def summary_markdown(run: DatasetRun, catalog, checkpoints: tuple[int, ...] = CH
             f"Mean NEES of the 3D translation after {max(checkpoints)} views: "
             f"{np.mean(last):.2f} (expected 3), median {np.median(last):.2f} (expected 2.37)."
         )
+        by_views = [(n, [r.nees for r in run.rows if r.n_views == n]) for n in checkpoints]
+        lines.append(
+            "By the views fused, mean / median (a median that grows with the views is an error "
+            "they share): "
+            + ", ".join(
+                f"{n}: {np.mean(v):.2f} / {np.median(v):.2f}" for n, v in by_views if len(v)
+            )
+            + "."
+        )
     for n in checkpoints:
         pairs = np.array(run.pose_nees.get(n, []), float).reshape(-1, 2)
         if not len(pairs):

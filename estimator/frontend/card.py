@@ -64,14 +64,17 @@ def score_factor(cov_by_score: tuple[tuple[float, float], ...], score: float) ->
     return cov_by_score[-1][1] if cov_by_score else 1.0
 
 
-# the verification settings a model card may set for its front end: how far its masks are
-# trusted (VerificationConfig), and the floor of the published covariance, what the views share
-# that no number of them averages out (RefineConfig, keys as ``--verification`` spells them)
+# the estimator's settings a model card may set for its front end: how far its masks are
+# trusted (VerificationConfig), the floor of the published covariance, what the views share
+# that no number of them averages out (RefineConfig, keys as ``--verification`` spells them),
+# and the share of the part's diameter its centres are biased by alike in every view
+# (TrackerConfig.translation_shared_frac)
 CARD_VERIFICATION_KEYS = (
     "mask_weight",
     "max_fit",
     "refinement.floor_translation_frac",
     "refinement.floor_rotation_deg",
+    "translation_shared_frac",
 )
 
 

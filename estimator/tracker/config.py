@@ -59,6 +59,14 @@ class TrackerConfig:
     # 515 -> 193, precision 34.1 -> 37.6 and 50.5 -> 52.8%, ADD-sym not lower anywhere; 4 gave
     # less of each (docs/lab/2026-12-05-translation-variance-factor.md)
     translation_variance_dof: float | None = 0.0
+    # the error a track's views share, as a share of the part's diameter (std per axis), added
+    # to its translation covariance: a learned front end's centres are biased alike in
+    # neighbouring views, so more views do not average it out and their scatter does not show
+    # it (on a part set's tuning bins the translation NEES grew 2.1 / 5.8 / 10.9 at 2 / 4 / 8
+    # views). A property of the front end: its card gives it (``translation_shared_frac`` in
+    # ModelCard.verification); 0, the default, for centres whose errors are the views' own
+    # (docs/lab/2026-12-07-translation-error-the-views-share.md)
+    translation_shared_frac: float = 0.0
     # verification and refinement in the update (False), or later, track by track, when
     # asked (MultiViewEstimator.check_next): the daemon runs them between frames, so a frame
     # never waits for them; checked after every update, the estimates are the same
@@ -71,6 +79,10 @@ class TrackerConfig:
             raise ValueError(
                 "translation_variance_dof must be None or at least 0, got "
                 f"{self.translation_variance_dof}"
+            )
+        if not self.translation_shared_frac >= 0:
+            raise ValueError(
+                f"translation_shared_frac must be at least 0, got {self.translation_shared_frac}"
             )
         if not 0.0 <= self.min_support <= 1.0 or self.support_after < 1:
             raise ValueError(
@@ -94,8 +106,15 @@ class TrackerConfig:
     def with_verification_settings(self, settings: dict) -> TrackerConfig:
         """These settings with VerificationConfig fields replaced by ``settings`` (field
         name -> value), ``edges.KEY`` and ``turns.KEY`` for the EdgeConfig and TurnJudgeConfig
-        it holds, ``refinement.KEY`` for the RefineConfig. Raises ValueError naming the group
-        of a setting its config refuses."""
+        it holds, ``refinement.KEY`` for the RefineConfig, and ``translation_shared_frac``
+        (this config's own). Raises ValueError naming the group of a setting its config
+        refuses."""
+        settings = dict(settings)
+        if "translation_shared_frac" in settings:
+            shared = settings.pop("translation_shared_frac")
+            return replace(self, translation_shared_frac=shared).with_verification_settings(
+                settings
+            )
         groups: dict[str, dict] = {"": {}, "edges": {}, "turns": {}, "refinement": {}}
         for key, value in settings.items():
             group, dot, name = key.partition(".")

@@ -141,14 +141,20 @@ class TrackBook:
         self.held: dict[int, list[HeldDetection]] = {}  # per class, waiting for a partner
         self.view_serial = 0  # views seen, for how long a detection is held
 
-    def _estimate(self, obs, prior_mean, prior_cov, start=None) -> TranslationEstimate:
+    def _estimate(self, obj_id, obs, prior_mean, prior_cov, start=None) -> TranslationEstimate:
         return estimate_translation(
             obs,
             prior_mean,
             prior_cov,
             start=start,
             variance_prior_dof=self.config.translation_variance_dof,
+            shared_std=self.shared_frac * self.catalog[obj_id].diameter,
         )
+
+    @property
+    def shared_frac(self) -> float:
+        """The error the views share, a share of the diameter (TrackerConfig)."""
+        return self.config.translation_shared_frac
 
     def classes(self) -> set[int]:
         return {t.obj_id for t in self.tracks.values()}
@@ -158,7 +164,7 @@ class TrackBook:
         return [t for t in self.tracks.values() if t.obj_id == obj_id]
 
     def new_track(self, obj_id: int, obs, prior_mean, prior_cov, refs: list[ViewRef]) -> Track:
-        estimate = self._estimate(obs, prior_mean, prior_cov)
+        estimate = self._estimate(obj_id, obs, prior_mean, prior_cov)
         serial = self.serial.get(obj_id, 0) + 1
         self.serial[obj_id] = serial
         object_id = f"{self.catalog[obj_id].name}-{serial:03d}"
@@ -241,7 +247,11 @@ class TrackBook:
             )
             track.refs.pop(0)
         track.estimate = self._estimate(
-            track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
+            track.obj_id,
+            track.obs,
+            track.prior_mean,
+            track.prior_cov,
+            start=track.estimate.t_world_obj,
         )
         track.last_stamp_ns = max(track.last_stamp_ns, ref.stamp_ns)
         track.misses = 0
@@ -284,7 +294,11 @@ class TrackBook:
             track.detections = [d for d in track.detections if d not in gone_ids]
             track.views_seen -= len(gone)
             track.estimate = self._estimate(
-                track.obs, track.prior_mean, track.prior_cov, start=track.estimate.t_world_obj
+                track.obj_id,
+                track.obs,
+                track.prior_mean,
+                track.prior_cov,
+                start=track.estimate.t_world_obj,
             )
             if len(gone) < 2:
                 continue
@@ -306,7 +320,7 @@ class TrackBook:
             pair = triangulate_pair(first[0], first[1], self.config.founding)
             if pair is None:
                 continue
-            est = self._estimate(split_obs, pair.prior_mean, pair.prior_cov)
+            est = self._estimate(track.obj_id, split_obs, pair.prior_mean, pair.prior_cov)
             if np.any(est.chi2 > self.config.splitting.outlier_chi2):
                 continue
             new = self.new_track(track.obj_id, split_obs, pair.prior_mean, pair.prior_cov, gone)
@@ -363,7 +377,7 @@ class TrackBook:
                     for R, c in comp.members:
                         keep.mixture.add(R, c)
         keep.estimate = self._estimate(
-            keep.obs, keep.prior_mean, keep.prior_cov, start=keep.estimate.t_world_obj
+            keep.obj_id, keep.obs, keep.prior_mean, keep.prior_cov, start=keep.estimate.t_world_obj
         )
 
     def drop_missed(self) -> list[str]:

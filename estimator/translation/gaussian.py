@@ -224,6 +224,7 @@ def estimate_translation(
     max_iterations: int = 15,
     tolerance: float = 1e-6,
     variance_prior_dof: float | None = None,
+    shared_std: float = 0.0,
 ) -> TranslationEstimate:
     """Robust Gauss-Newton for the translation from all views of a track.
 
@@ -234,7 +235,13 @@ def estimate_translation(
         tolerance: stop when the step is below this many metres.
         variance_prior_dof: None, the covariance is the inverse information alone; else it is
             multiplied by :func:`variance_factor` of the centres' scatter with this prior.
+        shared_std: metres, >= 0: the standard deviation per axis of the error the views share
+            (a bias of the front end's centres, alike in neighbouring views, which more views do
+            not average out and their scatter does not show); its variance is added to the
+            covariance. The solution itself does not depend on it.
     """
+    if not shared_std >= 0:
+        raise ValueError(f"shared_std must be at least 0, got {shared_std}")
     prior_info = np.linalg.inv(prior_cov)
     t = np.array(prior_mean if start is None else start, dtype=np.float64)
     cost, r, J, z, s = _cost(t, obs, prior_mean, prior_info, huber_k)
@@ -260,7 +267,7 @@ def estimate_translation(
     cov = np.linalg.inv(H)
     if variance_prior_dof is not None:
         cov = cov * variance_factor(w, s, variance_prior_dof)
-    cov = 0.5 * (cov + cov.T)
+    cov = 0.5 * (cov + cov.T) + np.eye(3) * shared_std**2
     return TranslationEstimate(t, cov, len(obs), w, s, cost)
 
 

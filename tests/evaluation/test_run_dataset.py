@@ -48,6 +48,10 @@ def test_run_dataset_writes_errors_at_2_4_and_8_views(eight_view_root, tmp_path,
     median = {n: float(np.median(e)) for n, e in by_views.items()}
     assert median[2] < 0.02  # two views triangulate
     assert median[8] < median[2], median
+    # the tracks' NEES by the views fused, as the rows give it
+    nees = {n: [float(r["nees"]) for r in rows if int(r["n_views"]) == n] for n in (2, 4, 8)}
+    shown = ", ".join(f"{n}: {np.mean(v):.2f} / {np.median(v):.2f}" for n, v in nees.items())
+    assert "By the views fused, mean / median" in text and shown in text, shown
     assert len(by_views[8]) >= 4  # most parts of the bin are scored at 8 views
 
 

@@ -297,6 +297,7 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     the estimator names them. The zigzag is one of the shipped model's own parts, so it must
     be found; with one part every detection is named it, and posed."""
     from posefuse.estimator.frontend.detection import ANY_PART
+    from posefuse.service.resources import DEFAULT_MODEL
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "parts"
@@ -309,7 +310,9 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     assert manifest["training_steps"] == 0
     card = json.loads((out / "model" / "parts.json").read_text())
     assert card["agnostic"] is True and card["classes"] == [{"obj_id": ANY_PART, "name": "part"}]
-    assert "verification" not in card  # the shipped model's masks, weighed as its own
+    # the shipped model's masks and centres, weighed as its own
+    shipped_card = json.loads(Path(DEFAULT_MODEL).with_suffix(".json").read_text())
+    assert card["verification"] == shipped_card["verification"]
     assert (out / "model" / card["two_stage"]["crop_model"]).is_file()
     for profile in ("mixed", "robi"):
         figures = manifest["validation"][profile]

@@ -21,6 +21,7 @@ from posefuse.estimator.frontend.voting import (
     _percentile_90,
     vote_instances,
 )
+from posefuse.estimator.tracker import TrackerConfig
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.service.resources import DEFAULT_MODEL
 
@@ -515,18 +516,20 @@ def test_an_any_part_model_needs_a_two_stage_model_with_its_card(tmp_path):
 def test_a_cards_verification_settings_are_read_written_and_refused_when_they_cannot_be(
     robi_catalog, tmp_path
 ):
-    """A card's ``verification`` (the settings its masks call for): absent on the shipped card,
-    read and written back where a card has it, and refused naming the field where it names an
-    unknown setting or a value that is not a finite number >= 0."""
-    assert load_card(DEFAULT_MODEL).verification is None
-    assert "verification" not in load_card(DEFAULT_MODEL).to_json()
+    """A card's ``verification`` (the settings its front end calls for): on the shipped card
+    only the error its centres share across views, read and written back where a card has it,
+    and refused naming the field where it names an unknown setting or a value that is not a
+    finite number >= 0."""
+    shipped = load_card(DEFAULT_MODEL)
+    assert shipped.verification == {"translation_shared_frac": 0.01}
+    assert TrackerConfig().with_card(shipped.verification).translation_shared_frac == 0.01
     settings = {"mask_weight": 0.5, "max_fit": 1.0, "refinement.floor_translation_frac": 0.02}
     card = load_card(_model_copy(tmp_path / "a", verification=settings))
     assert card.verification == settings and card.to_json()["verification"] == settings
     assert "verification" not in (card.extra or {})
     bad = [{"mask_weight": -1.0}, {"mask_weight": "heavy"}, {"mask_weight": float("nan")}]
     bad += [{"temperature": 0.1}, [0.5], {"refinement.damping": 0.1}]
-    bad += [{"refinement.floor_rotation_deg": float("inf")}]
+    bad += [{"refinement.floor_rotation_deg": float("inf")}, {"translation_shared_frac": -0.01}]
     for k, values in enumerate(bad):
         with pytest.raises(ModelError, match="verification|could not convert"):
             load_card(_model_copy(tmp_path / f"bad{k}", verification=values))

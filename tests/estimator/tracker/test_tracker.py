@@ -9,6 +9,7 @@ import pytest
 from posefuse.bench.translation_sequences import run_sequences
 from posefuse.estimator.frontend.detection import Detection
 from posefuse.estimator.tracker import CONFIRMED, Frame, MultiViewEstimator, TrackerConfig
+from posefuse.estimator.tracker.tracks import TrackBook
 from posefuse.evaluation.tracking import update_members
 from posefuse.sim.scenes import REALSENSE_1280x720, SceneSpec
 from posefuse.sim.sequences import make_sequence
@@ -224,3 +225,30 @@ def test_the_centres_scatter_only_ever_widens_a_tracks_covariance(robi_catalog, 
     for bad in (-1.0, float("nan")):  # refused when configured, not at the first update
         with pytest.raises(ValueError, match="translation_variance_dof"):
             TrackerConfig(translation_variance_dof=bad)
+
+
+def test_a_tracks_translation_covariance_holds_the_error_its_views_share(robi_catalog, runs):
+    """With ``translation_shared_frac`` (a model card's: the error its centres share across
+    views, a share of the part's diameter) a track's translation covariance adds it per axis to
+    what its fused centres say; the estimate itself is the same. The default is 0: centres whose
+    errors are each view's own, as these sequences' are."""
+    seq, est_default, _, _ = runs[0]
+    est_shared, _, _ = _run(robi_catalog, seq, TrackerConfig(translation_shared_frac=0.01))
+    compared = 0
+    for oid, track in est_default.tracks.items():
+        shared = est_shared.tracks.get(oid)
+        if shared is None or len(shared.obs) != len(track.obs):
+            continue
+        floor = (0.01 * robi_catalog[track.obj_id].diameter) ** 2
+        np.testing.assert_allclose(
+            shared.estimate.cov, track.estimate.cov + floor * np.eye(3), rtol=1e-6, atol=1e-12
+        )
+        np.testing.assert_allclose(shared.estimate.t_world_obj, track.estimate.t_world_obj)
+        compared += 1
+    assert compared >= 3
+    assert TrackBook(robi_catalog, TrackerConfig()).shared_frac == 0.0
+    card = TrackerConfig().with_card({"translation_shared_frac": 0.02, "max_fit": 1.0})
+    assert TrackBook(robi_catalog, card).shared_frac == 0.02 and card.verification.max_fit == 1.0
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(ValueError, match="translation_shared_frac"):
+            TrackerConfig(translation_shared_frac=bad)

@@ -141,6 +141,48 @@ def test_centres_of_two_parts_widen_the_covariance_and_consistent_ones_do_not():
     )
 
 
+def _biased_nees(n_views, shared_std, trials=100):
+    """Mean NEES of tracks whose centres all point at the part moved by one bias (a 3 mm std
+    per axis, drawn per track), each view adding its own 1 px noise (covariance 4 px^2, as
+    said): what the views share and what they do not."""
+    rng = np.random.default_rng(11)
+    out = []
+    for trial in range(trials):
+        t_true = np.array([0.02, 0.01, 0.03])
+        T_wcs = _views(n_views, trial)
+        bias = rng.normal(0, 3e-3, 3)
+        obs = _observe(t_true + bias, T_wcs, noise=2.0, seed=trial)
+        mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], 110.0, 0.08)
+        est = estimate_translation(obs, mean, cov, shared_std=shared_std)
+        error = est.t_world_obj - t_true
+        out.append(error @ np.linalg.solve(est.cov, error))
+    return float(np.mean(out))
+
+
+def test_an_error_the_views_share_is_covered_by_the_shared_floor_and_not_by_more_views():
+    # a bias shared by every view is not averaged out: the NEES grows with the views
+    assert _biased_nees(2, 0.0) < _biased_nees(8, 0.0) / 2
+    assert _biased_nees(8, 0.0) > 10
+    # with its std declared, the NEES is what a Gaussian of 3 dimensions gives, at any count
+    for n in (2, 8):
+        assert 2.0 < _biased_nees(n, 3e-3) < 4.0
+
+
+def test_the_shared_floor_widens_the_covariance_and_leaves_the_solution():
+    t_true = np.array([0.02, 0.01, 0.03])
+    T_wcs = _views(5, 3)
+    obs = _observe(t_true, T_wcs, noise=1.0, seed=4)
+    mean, cov = prior_from_first_view(T_wcs[0], CAM.K, obs.uv[0], 110.0, 0.08)
+    plain = estimate_translation(obs, mean, cov, variance_prior_dof=0.0)
+    floored = estimate_translation(obs, mean, cov, variance_prior_dof=0.0, shared_std=2e-3)
+    np.testing.assert_array_equal(floored.t_world_obj, plain.t_world_obj)
+    np.testing.assert_allclose(floored.cov, plain.cov + np.eye(3) * 4e-6, rtol=1e-12)
+    with pytest.raises(ValueError, match="shared_std"):
+        estimate_translation(obs, mean, cov, shared_std=-1e-3)
+    with pytest.raises(ValueError, match="shared_std"):
+        estimate_translation(obs, mean, cov, shared_std=float("nan"))
+
+
 @pytest.mark.parametrize(
     "cov, uv",
     [
