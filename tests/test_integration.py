@@ -47,7 +47,7 @@ RATE_HZ = "2"
 
 def _offline(dataset, messages):
     """The same messages through the daemon's decoder, synchroniser and worker, in order, with
-    the daemon's settings (the environment's, as the daemon reads them)."""
+    the daemon's settings (the environment's, as the daemon reads them, and the model card's)."""
     from posefuse.estimator.frontend.network import NetworkFrontend
     from posefuse.estimator.tracker import TrackerConfig
     from posefuse.service.replay import replay_offline
@@ -55,7 +55,10 @@ def _offline(dataset, messages):
 
     network = NetworkFrontend(DEFAULT_MODEL, dataset.catalog)
     worker = EstimatorWorker(
-        MultiViewEstimator(dataset.catalog, TrackerConfig.with_verification(Settings().verify)),
+        MultiViewEstimator(
+            dataset.catalog,
+            TrackerConfig.with_verification(Settings().verify).with_card(network.card.verification),
+        ),
         lambda image, stamp: network.detect(image),
     )
     replay_offline(messages, worker, "itest")

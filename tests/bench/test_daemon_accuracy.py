@@ -4,6 +4,7 @@ import numpy as np
 
 from posefuse.bench.daemon_accuracy import offline
 from posefuse.estimator.frontend.network import NetworkFrontend
+from posefuse.estimator.tracker import TrackerConfig
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.run_dataset import LabelledNetworkFrontend, run_dataset
 from posefuse.service.resources import DEFAULT_MODEL
@@ -24,9 +25,11 @@ def test_the_daemons_worker_publishes_what_run_dataset_scores(full_res_dataset, 
     scene_id = dataset.scene_ids[0]
     n = len(dataset.scene(scene_id).im_ids)
     daemon = offline(dataset, (scene_id,), {(scene_id, 4): 1_780_000_000 * 10**9, (scene_id, 8): 0})
-    network = LabelledNetworkFrontend(dataset, NetworkFrontend(DEFAULT_MODEL, robi_catalog))
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    network = LabelledNetworkFrontend(dataset, frontend)
+    config = TrackerConfig().with_card(frontend.card.verification)  # as run-dataset's
     reference = run_dataset(
-        dataset, network, checkpoints=(n,), show_progress=False, rotation=True
+        dataset, network, config, checkpoints=(n,), show_progress=False, rotation=True
     ).results[n]
     assert n == 4 and len(reference) >= 4
     got, want = _sorted_poses(daemon[4]), _sorted_poses(reference)
