@@ -24,7 +24,7 @@ import json
 import sys
 from pathlib import Path
 
-from posefuse.estimator.tracker import MultiViewEstimator
+from posefuse.estimator.tracker import MultiViewEstimator, TrackerConfig
 from posefuse.evaluation.dataset import load_dataset
 from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 from posefuse.evaluation.run_dataset import CHECKPOINTS, run_dataset
@@ -48,14 +48,23 @@ def _frontends(dataset, parts: str | None) -> dict:
     return out
 
 
+def estimator_config(frontend) -> TrackerConfig:
+    """The estimator's settings for ``frontend``: a network's take what its card gives
+    (ModelCard.verification), as run-dataset's and the daemon's do; an oracle's the defaults."""
+    card = getattr(getattr(frontend, "network", None), "card", None)
+    return TrackerConfig().with_card(card.verification if card is not None else None)
+
+
 def measure(dataset, frontend, quiet: bool = True) -> dict[int, object]:
-    """{views: EvaluationReport} of one front end on one dataset (the rotation step on)."""
-    shared = MultiViewEstimator(dataset.catalog, show_progress=not quiet)
+    """{views: EvaluationReport} of one front end on one dataset (the rotation step on), with
+    :func:`estimator_config`'s settings."""
+    config = estimator_config(frontend)
+    shared = MultiViewEstimator(dataset.catalog, config, show_progress=not quiet)
     for obj_id in dataset.catalog:
         shared.matcher(obj_id)  # the templates once, for every scene
 
     def factory():
-        return MultiViewEstimator(dataset.catalog, banks=shared.banks())
+        return MultiViewEstimator(dataset.catalog, config, banks=shared.banks())
 
     run = run_dataset(
         dataset, frontend, rotation=True, show_progress=not quiet, estimator_factory=factory

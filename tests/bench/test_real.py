@@ -55,3 +55,22 @@ def test_a_part_sets_network_is_scored_as_a_front_end_on_both(small_dataset_root
         score = rates[f"network front end / {label}"]
         assert 0.5 <= score["recall"] <= 1.0 and 0.5 <= score["precision"] <= 1.0, score
     assert "| rendered twin | " in capsys.readouterr().out
+
+
+def test_a_networks_rows_take_the_settings_of_its_card(small_dataset_root):
+    """The network's rows are run with what its card gives the estimator (here the shipped
+    card's shared centre error), as run-dataset and the daemon run it; an oracle's with the
+    defaults."""
+    from posefuse.estimator.frontend.network import NetworkFrontend
+    from posefuse.estimator.tracker import TrackerConfig
+    from posefuse.evaluation.dataset import load_dataset
+    from posefuse.evaluation.run_dataset import LabelledNetworkFrontend
+    from posefuse.service.resources import DEFAULT_MODEL
+
+    dataset = load_dataset(small_dataset_root)
+    network = NetworkFrontend(str(DEFAULT_MODEL), dataset.catalog)
+    config = real.estimator_config(LabelledNetworkFrontend(dataset, network))
+    assert config == TrackerConfig().with_card(network.card.verification)
+    assert config.translation_shared_frac == network.card.verification["translation_shared_frac"]
+    oracle = real._frontends(dataset, None)["oracle, boxes"]
+    assert real.estimator_config(oracle) == TrackerConfig()
