@@ -298,6 +298,7 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     be found; with one part every detection is named it, and posed."""
     from posefuse.estimator.frontend.detection import ANY_PART
     from posefuse.service.resources import DEFAULT_MODEL
+    from posefuse.sim.onboard import PART_SET_SHARED_FRAC
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "parts"
@@ -310,9 +311,13 @@ def test_no_fine_tune_finds_a_part_and_the_templates_name_it(tmp_path, capsys, m
     assert manifest["training_steps"] == 0
     card = json.loads((out / "model" / "parts.json").read_text())
     assert card["agnostic"] is True and card["classes"] == [{"obj_id": ANY_PART, "name": "part"}]
-    # the shipped model's masks and centres, weighed as its own
+    # the shipped model's masks weighed as its own; its centres of new parts biased as a part
+    # set's are
     shipped_card = json.loads(Path(DEFAULT_MODEL).with_suffix(".json").read_text())
-    assert card["verification"] == shipped_card["verification"]
+    assert card["verification"] == {
+        **shipped_card["verification"],
+        "translation_shared_frac": PART_SET_SHARED_FRAC,
+    }
     assert (out / "model" / card["two_stage"]["crop_model"]).is_file()
     for profile in ("mixed", "robi"):
         figures = manifest["validation"][profile]
