@@ -1,12 +1,14 @@
 """Time of the learned front end per frame, split by stage, against the parts in view.
 
 python -m posefuse.bench.frontend_speed --dataset DIR [--dataset DIR ...]
-    [--model models/robi_like.onnx] [--frames 30] [--threads 2]
+    [--model models/robi_like.onnx] [--frames 30] [--threads 2] [--spin]
 
 For each frame: the whole front end as it runs (``NetworkFrontend.detect``), and stage one
 alone (pre-processing, the box detector and its peaks); stage two is the rest (crops, the crop
 network on all crops at once, the refinement pass, voting, masks, duplicate removal). Medians
-are printed per dataset and per number of detections (1-10, 11-20, 21+).
+are printed per dataset and per number of detections (1-10, 11-20, 21+). ``--spin`` times
+the front end with onnxruntime's threads spinning after each run (its own default) instead of
+sleeping (``NetworkFrontend``'s).
 """
 
 from __future__ import annotations
@@ -45,11 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", default=DEFAULT_MODEL)
     parser.add_argument("--frames", type=int, default=30)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--spin", action="store_true", help="threads spin after a run")
     args = parser.parse_args(argv)
     buckets: dict[str, list[dict]] = {"1-10": [], "11-20": [], "21+": []}
     for root in args.dataset:
         ds = load_dataset(root)
-        frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads)
+        frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads, spin=args.spin)
         views = list(ds.views())[: args.frames]
         images = [ds.scene(v.scene_id).load_rgb(v.im_id) for v in views]
         frontend.detect(images[0])  # warm-up
@@ -60,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(t)
             key = "1-10" if n <= 10 else "11-20" if n <= 20 else "21+"
             buckets[key].append(t)
-        print(_summary(f"{root} ({len(rows)} frames, {args.threads} threads)", rows))
+        pools = "spinning" if args.spin else "sleeping"
+        print(_summary(f"{root} ({len(rows)} frames, {args.threads} threads {pools})", rows))
     for key, rows in buckets.items():
         if rows:
             print(_summary(f"frames with {key} detections", rows))

@@ -90,8 +90,26 @@ def preprocess(image: np.ndarray, card: ModelCard, factor: float = 1.0) -> np.nd
     ph, pw = -sh % 16, -sw % 16
     if ph or pw:
         small = cv2.copyMakeBorder(small, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-    x = (small.astype(np.float32) / 255.0 - np.float32(card.mean)) / np.float32(card.std)
-    return np.ascontiguousarray(x.transpose(2, 0, 1)[None])
+    return normalised(small[None], card.mean, card.std)
+
+
+def normalised(images: np.ndarray, mean, std) -> np.ndarray:
+    """(N, H, W, 3) uint8 RGB -> (N, 3, H, W) float32 ``(pixel / 255 - mean) / std`` per
+    channel, the networks' input.
+
+    Written channel by channel into the planar array, in place: the same float32 operations in
+    the same order as the whole-array expression, so the same bits, without its three
+    temporaries and the transposing copy (0.9 against 5.6 ms for a 640x368 frame on a 2-core
+    CPU; ``bench/frontend_speed.py``)."""
+    mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
+    n, h, w = images.shape[:3]
+    x = np.empty((n, 3, h, w), np.float32)
+    for c in range(3):
+        plane = x[:, c]
+        np.divide(images[..., c], np.float32(255.0), out=plane, dtype=np.float32)
+        plane -= mean[c]
+        plane /= std[c]
+    return x
 
 
 def output_to_image(xy_out: np.ndarray, card: ModelCard) -> np.ndarray:
@@ -110,6 +128,11 @@ class NetworkFrontend:
         deterministic: sequential execution and deterministic kernels where available.
         max_center_std_px: instances whose center standard deviation (sqrt of the trace of its
             covariance, image pixels) exceeds this are dropped.
+        spin: onnxruntime's intra-op threads spin for more work after a run (its own default)
+            instead of sleeping. Off: the two stages' sessions have a pool each, and a pool
+            still spinning after stage one takes the cores from stage two; asleep, the front
+            end took 68-85 against 109-134 ms a frame of mixed bins on 2 cores, the same
+            detections (``python -m posefuse.bench.frontend_speed --spin``).
     """
 
     def __init__(
@@ -121,7 +144,7 @@ class NetworkFrontend:
         voting: VotingConfig | None = None,
         seed: int = 0,
         max_center_std_px: float = 15.0,
-        spin: bool = True,
+        spin: bool = False,
     ):
         import onnxruntime as ort
 
@@ -279,13 +302,9 @@ class NetworkFrontend:
     def crop_infer(self, crops: np.ndarray, masks: np.ndarray | None = None) -> np.ndarray:
         """(N, S, S, 3) uint8 crops [and (N, S, S) uint8 box masks, for a stage two with the
         box channel] -> (N, 3, g, g) stage-two output."""
-        x = (crops.astype(np.float32) / 255.0 - np.float32(self.card.mean)) / np.float32(
-            self.card.std
-        )
-        x = x.transpose(0, 3, 1, 2)
+        x = normalised(crops, self.card.mean, self.card.std)
         if masks is not None:
             x = np.concatenate([x, masks[:, None].astype(np.float32)], 1)
-        x = np.ascontiguousarray(x)
         return self.crop_session.run(None, {self.crop_session.get_inputs()[0].name: x})[0]
 
     def _detect_two_stage(self, image: np.ndarray, frame_seed: int) -> list[Detection]:

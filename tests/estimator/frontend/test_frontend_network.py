@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posefuse.estimator.core.errors import PosefuseError
-from posefuse.estimator.frontend.network import ModelError, NetworkFrontend, load_card
+from posefuse.estimator.frontend.network import ModelError, NetworkFrontend, load_card, normalised
 from posefuse.estimator.frontend.voting import (
     VotingConfig,
     _least_squares_center,
@@ -154,14 +154,34 @@ def test_shipped_model_finds_the_visible_parts_where_they_are(full_res_dataset, 
     assert near / n_dets >= 0.6, f"{near} of {n_dets} detections within 5 px of a part"
 
 
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(0, 3),
+    h=st.integers(1, 9),
+    w=st.integers(1, 9),
+    seed=st.integers(0, 2**31 - 1),
+    mean=st.lists(st.floats(0.0, 1.0, width=32), min_size=3, max_size=3),
+    std=st.lists(st.floats(0.0625, 1.0, width=32), min_size=3, max_size=3),
+)
+def test_the_networks_input_is_the_whole_array_expression_to_the_bit(n, h, w, seed, mean, std):
+    """``normalised`` writes each channel in place; its bits are those of ``(x / 255 - mean) /
+    std`` on the whole float32 array, transposed to planes (what the networks were fed before),
+    so the detections do not move."""
+    images = np.random.default_rng(seed).integers(0, 256, (n, h, w, 3), dtype=np.uint8)
+    expected = (images.astype(np.float32) / 255.0 - np.float32(mean)) / np.float32(std)
+    got = normalised(images, mean, std)
+    assert got.shape == (n, 3, h, w) and got.dtype == np.float32 and got.flags.c_contiguous
+    assert np.array_equal(got, expected.transpose(0, 3, 1, 2))
+
+
 def test_sleeping_threads_find_what_spinning_ones_find(full_res_dataset, robi_catalog):
-    """``spin=False`` (the daemon's setting) tells onnxruntime's pools to sleep after a run;
-    the detections are the same, to the bit."""
+    """``spin=False`` (the default) tells onnxruntime's pools to sleep after a run; the
+    detections are those of spinning pools, to the bit."""
     dataset = load_dataset(full_res_dataset)
     view = next(iter(dataset.views()))
     image = dataset.scene(view.scene_id).load_rgb(view.im_id)
-    spinning = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
-    sleeping = NetworkFrontend(DEFAULT_MODEL, robi_catalog, spin=False)
+    spinning = NetworkFrontend(DEFAULT_MODEL, robi_catalog, spin=True)
+    sleeping = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
     key = "session.intra_op.allow_spinning"
     for session in (sleeping.session, sleeping.crop_session):
         assert session.get_session_options().get_session_config_entry(key) == "0"
