@@ -149,20 +149,29 @@ class TrueBoxError:
     error: float | None
 
 
-def true_box_errors(fe: NetworkFrontend, image: np.ndarray, view) -> list[TrueBoxError]:
+def true_box_errors(
+    fe: NetworkFrontend, image: np.ndarray, view, offset: float = 0.0, size_factor: float = 1.0
+) -> list[TrueBoxError]:
     """Stage two, one pass, on a box per part more than 75% visible: its visible box, of its
     class (any class for a generalist), scored as a confident box. One row per such part, in
-    the order of ``view_fates``'s rows; ``error`` None where the crop gave no centre."""
+    the order of ``view_fates``'s rows; ``error`` None where the crop gave no centre.
+
+    ``offset`` moves each box's centre by that share of its longer side, in a direction drawn
+    per part (seeded by the image), and ``size_factor`` scales its width and height: stage
+    one's box as it errs (for the large parts of a part set about 0.13 of the side off and 0.9
+    of the size: docs/lab/2026-12-06-large-parts-half-scale.md)."""
     gts, truth, _ = match_to_truth([], view, MAX_PX)
     obj_ids = [k for k, _ in fe.card.classes]
+    directions = np.random.default_rng([image_seed(image), 3]).uniform(0, 2 * np.pi, len(gts))
     parts, boxes = [], []
     for j, gt in enumerate(gts):
         if gt.visib_fract <= MIN_VISIB:
             continue
         x, y, w, h = (float(v) for v in gt.bbox_visib)
         index = 0 if fe.card.agnostic else obj_ids.index(gt.obj_id)
-        center = np.array([x + w / 2 - 0.5, y + h / 2 - 0.5])
-        boxes.append(Box(index, center, np.array([w, h]), 1.0))
+        step = offset * max(w, h) * np.array([np.cos(directions[j]), np.sin(directions[j])])
+        center = np.array([x + w / 2 - 0.5, y + h / 2 - 0.5]) + step
+        boxes.append(Box(index, center, np.array([w, h]) * size_factor, 1.0))
         parts.append((j, gt.obj_id, max(w, h)))
     rng = np.random.default_rng([fe.seed, image_seed(image), 2])
     votes = fe.stage_two_votes(image, boxes, rng) if boxes else []
@@ -287,6 +296,18 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also stage two alone, on crops cut around each part's own visible box",
     )
+    parser.add_argument(
+        "--box-offset",
+        type=float,
+        default=0.0,
+        help="with --true-boxes: each box's centre moved by this share of its longer side",
+    )
+    parser.add_argument(
+        "--box-size",
+        type=float,
+        default=1.0,
+        help="with --true-boxes: each box's width and height times this",
+    )
     args = parser.parse_args(argv)
     if args.picture:
         write_picture(args.dataset[0], args.model, *args.picture)
@@ -305,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
             image = ds.scene(view.scene_id).load_rgb(view.im_id)
             rows += view_fates(fe, image, view)[2]
             if args.true_boxes:
-                true_rows += true_box_errors(fe, image, view)
+                true_rows += true_box_errors(fe, image, view, args.box_offset, args.box_size)
         print(_table_row(root, rows))
         if args.by_object:
             for obj_id in sorted({r.obj_id for r in rows}):
@@ -313,7 +334,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(_table_row(label, [r for r in rows if r.obj_id == obj_id]))
         true_tables.append((root, ds.catalog, true_rows))
     for root, catalog, true_rows in true_tables if args.true_boxes else []:
-        print(f"\nstage two on each part's own box, {root}:")
+        moved = f" (moved {args.box_offset:g} of its side, x{args.box_size:g} in size)"
+        print(f"\nstage two on each part's own box{moved}, {root}:")
         print(
             "| part | parts | box side, median px | centre within 15 px | error, median px "
             "| error / box side, median |"
