@@ -171,22 +171,53 @@ class _StablePoses:
 _STABLE = _StablePoses()
 
 
+class _PilePieces:
+    """The bin and the parts placed in it, each with its own ray intersector, built once.
+
+    Rebuilding one intersector over the whole pile after every part grew as the square of the
+    parts (placing a pile of 36 eye bolts of 41k faces took 18.7 s, 11.8 s this way); a ray
+    cast straight down from inside a part's footprint can only meet a piece whose footprint
+    overlaps it, so only those are asked, and the nearest of their hits is the pile's. The
+    same distance as the whole pile's to float precision, not to the bit: the intersector
+    works in float32 on each mesh scaled to its own box, so where two pieces are hit within
+    float32 of each other the nearer may differ (a part's height by 0.3 nm in one of 4 scenes
+    compared; their images equal)."""
+
+    def __init__(self, bin_mesh: trimesh.Trimesh):
+        self.pieces: list[tuple[_Caster, np.ndarray]] = []
+        self.add(bin_mesh)
+
+    def add(self, mesh: trimesh.Trimesh) -> None:
+        self.pieces.append((_Caster(mesh), mesh.bounds[:, :2].copy()))
+
+    def distance_down(self, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
+        """Smallest distance straight down (-z) from any of ``origins`` (n, 3), whose x and y
+        lie within [lo, hi] (2,), to the pile."""
+        down = np.array([0.0, 0.0, -1.0])
+        dist = np.inf
+        for caster, (piece_lo, piece_hi) in self.pieces:
+            if np.all(piece_lo <= hi) and np.all(lo <= piece_hi):
+                dist = min(dist, caster.distance(origins, down))
+        return dist
+
+
 def _drop_distance(
     part: trimesh.Trimesh,
     pile: trimesh.Trimesh,
-    pile_intersector: RayMeshIntersector,
+    pieces: _PilePieces,
     rng: np.random.Generator,
 ) -> float:
-    """How far ``part`` can move straight down (-z) before touching ``pile``."""
+    """How far ``part`` can move straight down (-z) before touching ``pile`` (the bin and the
+    parts placed, as one mesh and as ``pieces``)."""
     down = np.array([0.0, 0.0, -1.0])
     samples, _ = trimesh.sample.sample_surface(part, 3000, seed=int(rng.integers(2**31)))
     part_pts = np.vstack([part.vertices, samples])
-    dist = _ray_distance(pile_intersector, part_pts, down)
     lo, hi = part.bounds[:, :2]
+    dist = pieces.distance_down(part_pts, lo, hi)
     pile_pts = np.vstack([pile.vertices, _pile_samples(pile)])
     inside = np.all((pile_pts[:, :2] >= lo) & (pile_pts[:, :2] <= hi), axis=1)
     if inside.any():
-        up = _ray_distance(RayMeshIntersector(part), pile_pts[inside], -down)
+        up = _Caster(part).distance(pile_pts[inside], -down)
         dist = min(dist, up)
     return dist
 
@@ -203,20 +234,27 @@ def _pile_samples(pile: trimesh.Trimesh) -> np.ndarray:
 _PILE_CACHE: dict = {}
 
 
-def _ray_distance(
-    intersector: RayMeshIntersector, origins: np.ndarray, direction: np.ndarray
-) -> float:
-    """Smallest distance along ``direction`` from any origin to the intersector's mesh."""
-    dirs = np.broadcast_to(direction, origins.shape).copy()
-    tri = intersector.intersects_first(origins, dirs)
-    hit = tri >= 0
-    if not hit.any():
-        return np.inf
-    mesh = intersector.mesh
-    fn = mesh.face_normals[tri[hit]]
-    p0 = mesh.triangles[tri[hit], 0]
-    t = np.einsum("ij,ij->i", p0 - origins[hit], fn) / np.einsum("ij,ij->i", dirs[hit], fn)
-    return float(np.min(t))
+class _Caster:
+    """A mesh's ray intersector with its triangles and face normals read once (trimesh checks
+    its cache by hashing the mesh's arrays at every read)."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        self.intersector = RayMeshIntersector(mesh)
+        self.triangles = np.asarray(mesh.triangles)  # (F, 3, 3)
+        self.face_normals = np.asarray(mesh.face_normals)  # (F, 3)
+
+    def distance(self, origins: np.ndarray, direction: np.ndarray) -> float:
+        """Smallest distance along ``direction`` (3,) from any of ``origins`` (n, 3) to the
+        mesh (inf when no ray meets it)."""
+        dirs = np.broadcast_to(direction, origins.shape).copy()
+        tri = self.intersector.intersects_first(origins, dirs)
+        hit = tri >= 0
+        if not hit.any():
+            return np.inf
+        fn = self.face_normals[tri[hit]]
+        p0 = self.triangles[tri[hit], 0]
+        t = np.einsum("ij,ij->i", p0 - origins[hit], fn) / np.einsum("ij,ij->i", dirs[hit], fn)
+        return float(np.min(t))
 
 
 def place_instances(
@@ -229,7 +267,7 @@ def place_instances(
     rather than balancing on top of it.
     """
     pile = bin_mesh(spec.bin)
-    pile_intersector = RayMeshIntersector(pile)
+    pieces = _PilePieces(pile)
     sx, sy = spec.bin.size
     instances: list[Instance] = []
     for _ in range(n):
@@ -253,7 +291,7 @@ def place_instances(
             start_z = pile.bounds[1, 2] + 0.02 - lo[2]
             shift = np.array([*(centre_xy - (lo[:2] + hi[:2]) / 2), start_z])
             posed.apply_translation(shift)
-            drop = _drop_distance(posed, pile, pile_intersector, rng)
+            drop = _drop_distance(posed, pile, pieces, rng)
             if not np.isfinite(drop):
                 continue
             drop = max(drop - 2e-4, 0.0)  # leave a 0.2 mm gap: touching, never intersecting
@@ -266,7 +304,7 @@ def place_instances(
         posed.apply_translation([0, 0, -drop])
         instances.append(Instance(model.obj_id, _pose(R, t)))
         pile = trimesh.util.concatenate([pile, posed])
-        pile_intersector = RayMeshIntersector(pile)
+        pieces.add(posed)
     return instances
 
 

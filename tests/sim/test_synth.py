@@ -10,7 +10,7 @@ import trimesh
 
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.objects import Catalog, make_model
-from posefuse.sim.scenes import SceneSpec, make_scene
+from posefuse.sim.scenes import SceneSpec, _Caster, _PilePieces, bin_mesh, make_scene
 from posefuse.sim.synth import SynthConfig, generate_dataset
 
 SMALL_CAMERA = Camera(np.array([[231.0, 0, 160.0], [0, 231.0, 90.0], [0, 0, 1]]), 320, 180)
@@ -56,6 +56,32 @@ def test_parts_rest_in_the_bin_without_interpenetrating(catalog):
             assert depth.max() < 1.0e-3, (
                 f"part {k} penetrates another by {depth.max() * 1000:.2f} mm"
             )
+
+
+def test_the_piles_pieces_meet_a_ray_where_the_whole_pile_does(catalog):
+    """A part falls onto the bin and the parts placed, each with its own intersector, asked
+    only where its footprint overlaps the falling part's: the distance is the one the whole
+    pile, as one mesh, gives (to float precision), and no closer piece is left out."""
+    spec = SceneSpec(n_instances=(8, 8))
+    scene = make_scene(catalog, spec, seed=11)
+    parts = [_posed(catalog, inst) for inst in scene.instances]
+    floor = bin_mesh(spec.bin)
+    pieces = _PilePieces(floor)
+    for part in parts:
+        pieces.add(part)
+    whole = _Caster(trimesh.util.concatenate([floor, *parts]))
+    rng = np.random.default_rng(0)
+    down = np.array([0.0, 0.0, -1.0])
+    met_a_part = 0
+    for _ in range(40):
+        centre = rng.uniform(-0.08, 0.08, 2)
+        half = rng.uniform(0.005, 0.04, 2)
+        lo, hi = centre - half, centre + half
+        origins = np.column_stack([rng.uniform(lo, hi, (200, 2)), np.full(200, 0.5)])
+        expected = whole.distance(origins, down)
+        assert pieces.distance_down(origins, lo, hi) == pytest.approx(expected, abs=1e-9)
+        met_a_part += expected < 0.5 - 1e-3  # above the bin's floor: a part was nearest
+    assert met_a_part >= 5
 
 
 def test_views_look_into_the_bin_from_the_hemisphere(catalog):
