@@ -309,6 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         help="with --true-boxes: each box's width and height times this",
     )
     args = parser.parse_args(argv)
+    if (args.box_offset, args.box_size) != (0.0, 1.0) and not args.true_boxes:
+        parser.error("--box-offset and --box-size move the boxes of --true-boxes: add it")
     if args.picture:
         write_picture(args.dataset[0], args.model, *args.picture)
     print(f"model {args.model}")
@@ -334,7 +336,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(_table_row(label, [r for r in rows if r.obj_id == obj_id]))
         true_tables.append((root, ds.catalog, true_rows))
     for root, catalog, true_rows in true_tables if args.true_boxes else []:
-        moved = f" (moved {args.box_offset:g} of its side, x{args.box_size:g} in size)"
+        moved = (
+            f" (moved {args.box_offset:g} of its side, x{args.box_size:g} in size)"
+            if (args.box_offset, args.box_size) != (0.0, 1.0)
+            else ""
+        )
         print(f"\nstage two on each part's own box{moved}, {root}:")
         print(
             "| part | parts | box side, median px | centre within 15 px | error, median px "

@@ -22,7 +22,9 @@ DEPTH_SCALE = 0.1  # BOP: depth_mm = png_value * depth_scale
 # lossless as every PNG; the rows predicted from the row above, and zlib's fast run-length
 # matching: a rendered view's sensor noise leaves its long matches nothing to find. On a 2-core
 # CPU a 1280x720 view's RGB took 39 instead of 170 ms, its depth 19 instead of 67 and a mask 7
-# instead of 15, the files no larger (the default: level 3, every filter tried per row)
+# instead of 15, the files no larger (against level 3 with every filter tried per row, as
+# written until 2026-12-07). The level comes first: OpenCV resets the strategy when it is set.
+# The row filter needs OpenCV 4.12.
 PNG_PARAMS = [
     cv2.IMWRITE_PNG_COMPRESSION,
     1,

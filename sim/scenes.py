@@ -190,10 +190,10 @@ class _PilePieces:
     def add(self, mesh: trimesh.Trimesh) -> None:
         self.pieces.append((_Caster(mesh), mesh.bounds[:, :2].copy()))
 
-    def distance_down(self, origins: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:
-        """Smallest distance straight down (-z) from any of ``origins`` (n, 3), whose x and y
-        lie within [lo, hi] (2,), to the pile."""
+    def distance_down(self, origins: np.ndarray) -> float:
+        """Smallest distance straight down (-z) from any of ``origins`` (n, 3) to the pile."""
         down = np.array([0.0, 0.0, -1.0])
+        lo, hi = origins[:, :2].min(0), origins[:, :2].max(0)  # the rays' footprint
         dist = np.inf
         for caster, (piece_lo, piece_hi) in self.pieces:
             if np.all(piece_lo <= hi) and np.all(lo <= piece_hi):
@@ -212,8 +212,8 @@ def _drop_distance(
     down = np.array([0.0, 0.0, -1.0])
     samples, _ = trimesh.sample.sample_surface(part, 3000, seed=int(rng.integers(2**31)))
     part_pts = np.vstack([part.vertices, samples])
+    dist = pieces.distance_down(part_pts)
     lo, hi = part.bounds[:, :2]
-    dist = pieces.distance_down(part_pts, lo, hi)
     pile_pts = np.vstack([pile.vertices, _pile_samples(pile)])
     inside = np.all((pile_pts[:, :2] >= lo) & (pile_pts[:, :2] <= hi), axis=1)
     if inside.any():

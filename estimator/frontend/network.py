@@ -101,6 +101,10 @@ def normalised(images: np.ndarray, mean, std) -> np.ndarray:
     the same order as the whole-array expression, so the same bits, without its three
     temporaries and the transposing copy (0.9 against 5.6 ms for a 640x368 frame on a 2-core
     CPU; ``bench/frontend_speed.py``)."""
+    if images.ndim != 4 or images.shape[3] != 3 or images.dtype != np.uint8:
+        raise ValueError(
+            f"normalised: images must be (N, H, W, 3) uint8, got {images.shape} {images.dtype}"
+        )
     mean, std = np.asarray(mean, np.float32), np.asarray(std, np.float32)
     n, h, w = images.shape[:3]
     x = np.empty((n, 3, h, w), np.float32)
@@ -131,8 +135,8 @@ class NetworkFrontend:
         spin: onnxruntime's intra-op threads spin for more work after a run (its own default)
             instead of sleeping. Off: the two stages' sessions have a pool each, and a pool
             still spinning after stage one takes the cores from stage two; asleep, the front
-            end took 68-85 against 109-134 ms a frame of mixed bins on 2 cores, the same
-            detections (``python -m posefuse.bench.frontend_speed --spin``).
+            end took 64.8 against 96.1 ms a frame of mixed bins (median) on a 2-core CPU, the
+            same detections (``python -m posefuse.bench.frontend_speed [--spin]``).
     """
 
     def __init__(

@@ -172,6 +172,16 @@ def test_the_networks_input_is_the_whole_array_expression_to_the_bit(n, h, w, se
     got = normalised(images, mean, std)
     assert got.shape == (n, 3, h, w) and got.dtype == np.float32 and got.flags.c_contiguous
     assert np.array_equal(got, expected.transpose(0, 3, 1, 2))
+    # a strided view (a crop's rows reversed) is read as its values, not its memory
+    flipped = normalised(images[:, ::-1], mean, std)
+    assert np.array_equal(flipped, expected[:, ::-1].transpose(0, 3, 1, 2))
+
+
+def test_the_networks_input_must_be_rgb_bytes():
+    with pytest.raises(ValueError, match="uint8"):
+        normalised(np.zeros((1, 4, 4, 4), np.uint8), (0.5,) * 3, (0.2,) * 3)
+    with pytest.raises(ValueError, match="uint8"):
+        normalised(np.zeros((1, 4, 4, 3), np.float32), (0.5,) * 3, (0.2,) * 3)
 
 
 def test_sleeping_threads_find_what_spinning_ones_find(full_res_dataset, robi_catalog):
