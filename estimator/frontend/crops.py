@@ -43,7 +43,7 @@ def warp_crop(
     y0 = int(np.clip(np.floor(b[1]) - 1, 0, H - 1))
     x1 = int(np.clip(np.ceil(b[0] + a * size) + 2, x0 + 1, W))
     y1 = int(np.clip(np.ceil(b[1] + a * size) + 2, y0 + 1, H))
-    region = np.ascontiguousarray(image[y0:y1, x0:x1])
+    region = image[y0:y1, x0:x1]  # a view: OpenCV reads its rows by their stride
     M = np.array([[a, 0.0, b[0] - x0], [0.0, a, b[1] - y0]])
     return cv2.warpAffine(
         region,

@@ -46,7 +46,7 @@ from posefuse.estimator.frontend.two_stage import (
     suppress_duplicates,
     vote_center,
 )
-from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
+from posefuse.estimator.frontend.voting import VotingConfig, compile_kernels, vote_instances
 
 
 class UnsupportedImage(PosefuseError, ValueError):
@@ -195,6 +195,7 @@ class NetworkFrontend:
         self.seed = seed
         # a vote this spread out comes from a fragment or a confused field, not a part
         self.max_center_std_px = max_center_std_px
+        compile_kernels()  # the voting's loops before the first frame, not during it
 
     def check_image(self, image: np.ndarray) -> None:
         w, h = self.card.image_size

@@ -144,7 +144,8 @@ def vote_center(
     if sel.sum() < config.min_votes:
         return None
     ys, xs = np.nonzero(sel)
-    pix = np.stack([xs, ys], 1).astype(np.float64)
+    pix = np.empty((len(xs), 2))
+    pix[:, 0], pix[:, 1] = xs, ys
     vec = vectors[:, ys, xs].T.astype(np.float64)
     instances = [i for i in vote_instances(pix, vec, voting, rng) if i.n_votes >= config.min_votes]
     if not instances:
@@ -152,7 +153,8 @@ def vote_center(
     # the part the crop is centred on: in a pile the crop also holds pieces of its
     # neighbours, and a neighbour's piece may gather more votes than the part itself
     middle = 0.5 * (g - 1)
-    inst = min(instances, key=lambda i: float(np.hypot(*(i.center - middle))))
+    offsets = np.array([i.center for i in instances]) - middle
+    inst = instances[int(np.argmin(np.hypot(offsets[:, 0], offsets[:, 1])))]
     # output cell -> crop pixel -> image pixel
     a_out = a * config.crop_stride
     b_out = b + a * 0.5 * (config.crop_stride - 1)
@@ -189,10 +191,10 @@ def detection_of(vote: CropVote, image_hw: tuple[int, int], obj_id: int) -> Dete
     if not local.any():
         return None
     mask = np.zeros((H, W), bool)
-    mask[y0:y1, x0:x1] = local > 0
-    my, mx = np.nonzero(local)
+    mask[y0:y1, x0:x1] = local.view(bool)  # 0 or 1
+    cols, rows = np.flatnonzero(local.any(0)), np.flatnonzero(local.any(1))
     bbox = np.array(
-        [x0 + mx.min(), y0 + my.min(), mx.max() - mx.min() + 1, my.max() - my.min() + 1], float
+        [x0 + cols[0], y0 + rows[0], cols[-1] - cols[0] + 1, rows[-1] - rows[0] + 1], float
     )
     return Detection(obj_id, bbox, vote.center, vote.cov, mask, vote.score)
 

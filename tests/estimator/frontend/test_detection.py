@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from posefuse.estimator.frontend.detection import Detection
 
@@ -40,3 +42,34 @@ def test_an_unknown_mask_kind_is_refused_naming_the_field():
 def test_bad_fields_are_refused(field, value, message):
     with pytest.raises(ValueError, match=message):
         _detection(**{field: value})
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(-1e3, 1e3, allow_subnormal=False), min_size=4, max_size=4),
+    st.sampled_from([0.0, 1e-12, 1e-7, 1e-3]),
+)
+def test_the_covariance_checks_decide_as_numpys_allclose_and_eigvalsh(values, skew):
+    """The scalar checks refuse exactly the covariances numpy's own tests would: not
+    symmetric to ``np.allclose`` (atol 1e-9 x the largest entry), or not positive definite by
+    ``np.linalg.eigvalsh`` of the lower triangle (away from a tie at zero)."""
+    cov = np.array(values).reshape(2, 2)
+    cov[0, 1] = cov[1, 0] * (1 + skew) + skew
+    symmetric = np.allclose(cov, cov.T, atol=1e-9 * max(1.0, float(np.abs(cov).max())))
+    smallest = float(np.linalg.eigvalsh(cov).min())
+    if not symmetric:
+        with pytest.raises(ValueError, match="symmetric"):
+            _detection(center_cov=cov)
+    elif abs(smallest) > 1e-9 * max(1.0, float(np.abs(cov).max())):
+        if smallest > 0:
+            _detection(center_cov=cov)
+        else:
+            with pytest.raises(ValueError, match="positive definite"):
+                _detection(center_cov=cov)
+
+
+def test_an_asymmetric_or_infinite_covariance_is_refused():
+    with pytest.raises(ValueError, match="symmetric"):
+        _detection(center_cov=[[1.0, 0.5], [0.4, 1.0]])
+    with pytest.raises(ValueError, match="finite"):
+        _detection(center_cov=[[np.inf, 0.0], [0.0, 1.0]])

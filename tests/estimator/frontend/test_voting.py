@@ -1,0 +1,86 @@
+"""The voting's compiled loops against the numpy expressions they replace: the hypotheses, their
+scores and the angles to a center to the bit, the line fit to rounding."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from posefuse.estimator.frontend.voting import (
+    VotingConfig,
+    _cos_and_distance,
+    _count_inliers,
+    _finite_intersections,
+    _intersections,
+    _line_fit,
+    _normal_equations,
+    vote_instances,
+)
+
+
+def _lines(seed: int, n: int, spread: float = 0.3):
+    """(p, v): n pixels on a 48-cell grid and unit vectors roughly towards (20, 30)."""
+    rng = np.random.default_rng(seed)
+    p = rng.integers(0, 48, (n, 2)).astype(np.float64)
+    v = np.array([20.0, 30.0]) - p + rng.normal(0, spread, (n, 2)) * 10
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    return p, v
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(2, 300), st.floats(0.99, 0.9999))
+def test_hypotheses_and_their_scores_are_numpys_to_the_bit(seed, n, inlier_cos):
+    p, v = _lines(seed, n)
+    rng = np.random.default_rng(seed + 1)
+    i, j = rng.integers(n, size=64), rng.integers(n, size=64)
+    j[:4] = i[:4]  # a line with itself: parallel, no intersection
+    h = _intersections(p, v, i, j)
+    h = h[np.all(np.isfinite(h), axis=1)]
+    got = _finite_intersections(p, v, i, j)
+    assert got.shape == h.shape and np.array_equal(got, h)
+    dx = h[:, 0, None] - p[None, :, 0]
+    dy = h[:, 1, None] - p[None, :, 1]
+    norm = np.sqrt(dx * dx + dy * dy)
+    cos = (dx * v[None, :, 0] + dy * v[None, :, 1]) / np.maximum(norm, 1e-9)
+    assert np.array_equal(_count_inliers(h, p, v, inlier_cos), (cos > inlier_cos).sum(1))
+    for point in [h[0] if len(h) else np.zeros(2), p[0]]:  # p[0]: a zero offset
+        d = point[None] - p
+        want_cos = (d * v).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        got_cos, got_dist = _cos_and_distance(point, p, v)
+        assert np.array_equal(got_cos, want_cos)
+        assert np.array_equal(got_dist, np.linalg.norm(d, axis=1))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(3, 300))
+def test_the_line_fit_is_the_normal_equations_to_rounding(seed, n):
+    p, v = _lines(seed, n)
+    use = np.random.default_rng(seed).random(n) < 0.7
+    use[:3] = True
+    x, A, sigma2 = _normal_equations(p[use], v[use])
+    got_x, got_A, got_sigma2, solved = _line_fit(p, v, use)
+    assert solved
+    np.testing.assert_allclose(got_A, A, rtol=1e-12, atol=1e-12 * len(p))
+    np.testing.assert_allclose(got_x, x, rtol=0, atol=1e-9 * (1 + np.abs(x).max()))
+    assert got_sigma2 == np.float64(sigma2) or abs(got_sigma2 - sigma2) <= 1e-9 * (1 + sigma2)
+
+
+def test_parallel_lines_have_no_point_and_vote_for_nothing():
+    """Every vector alike: no pair intersects, the normal matrix is singular; the voting
+    finds no instance instead of failing."""
+    p = np.stack(np.meshgrid(np.arange(10.0), np.arange(10.0)), -1).reshape(-1, 2)
+    v = np.tile([[0.6, 0.8]], (len(p), 1))
+    assert not _line_fit(p, v, np.ones(len(p), bool))[3]
+    assert len(_finite_intersections(p, v, np.arange(50), np.arange(50, 100))) == 0
+    assert vote_instances(p, v, VotingConfig(min_inliers=5), seed=0) == []
+
+
+def test_lines_along_one_line_have_no_point_until_one_crosses_them():
+    """Lines all along one line have no point to meet at; one line across them fixes it."""
+    p = np.stack([np.arange(30.0), np.zeros(30)], 1)
+    v = np.tile([[1.0, 0.0]], (30, 1))
+    assert not _line_fit(p, v, np.ones(30, bool))[3]
+    v[0] = [0.0, 1.0]
+    x, _, _, solved = _line_fit(p, v, np.ones(30, bool))
+    assert solved and np.isfinite(x).all()
