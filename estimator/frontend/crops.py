@@ -12,6 +12,8 @@ functions, which is what makes the network's output mean the same thing at infer
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -39,12 +41,13 @@ def warp_crop(
     outside the image repeat its border. Only the region the crop covers is read (the image
     may be a memory map)."""
     H, W = image.shape[:2]
-    x0 = int(np.clip(np.floor(b[0]) - 1, 0, W - 1))
-    y0 = int(np.clip(np.floor(b[1]) - 1, 0, H - 1))
-    x1 = int(np.clip(np.ceil(b[0] + a * size) + 2, x0 + 1, W))
-    y1 = int(np.clip(np.ceil(b[1] + a * size) + 2, y0 + 1, H))
+    bx, by, a = float(b[0]), float(b[1]), float(a)
+    x0 = min(max(math.floor(bx) - 1, 0), W - 1)
+    y0 = min(max(math.floor(by) - 1, 0), H - 1)
+    x1 = min(max(math.ceil(bx + a * size) + 2, x0 + 1), W)
+    y1 = min(max(math.ceil(by + a * size) + 2, y0 + 1), H)
     region = image[y0:y1, x0:x1]  # a view: OpenCV reads its rows by their stride
-    M = np.array([[a, 0.0, b[0] - x0], [0.0, a, b[1] - y0]])
+    M = np.array([[a, 0.0, bx - x0], [0.0, a, by - y0]])
     return cv2.warpAffine(
         region,
         M,

@@ -24,7 +24,7 @@ import numpy as np
 
 from posefuse.estimator.frontend.crops import box_mask, crop_transform, warp_crop
 from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.frontend.voting import VotingConfig, vote_instances
+from posefuse.estimator.frontend.voting import VotingConfig, labelled_pixels, vote_instances
 
 
 @dataclass(frozen=True)
@@ -140,13 +140,9 @@ def vote_center(
     """
     logit, vectors = crop_out[0], crop_out[1:]
     g = logit.shape[0]
-    sel = logit > 0
-    if sel.sum() < config.min_votes:
+    pix, vec = labelled_pixels(logit, vectors)
+    if len(pix) < config.min_votes:
         return None
-    ys, xs = np.nonzero(sel)
-    pix = np.empty((len(xs), 2))
-    pix[:, 0], pix[:, 1] = xs, ys
-    vec = vectors[:, ys, xs].T.astype(np.float64)
     instances = [i for i in vote_instances(pix, vec, voting, rng) if i.n_votes >= config.min_votes]
     if not instances:
         return None

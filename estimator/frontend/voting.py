@@ -199,10 +199,114 @@ _finite_intersections = _compiled(_finite_intersections_loops)
 _line_fit = _compiled(_line_fit_loops)
 
 
-def _covariance(A: np.ndarray, sigma2: float) -> np.ndarray:
-    """(2, 2) sigma2 * inv(A) of a (2, 2) symmetric positive definite A, in closed form."""
-    det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-    return (sigma2 / det) * np.array([[A[1, 1], -A[0, 1]], [-A[1, 0], A[0, 0]]])
+def _percentile_90_sorted_loops(x):  # pragma: no cover (compiled)
+    """:func:`_percentile_90` of x (n,) by a full sort (the same order statistics)."""
+    xs = np.sort(x)
+    pos = 0.9 * (xs.shape[0] - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, xs.shape[0] - 1)
+    a, b, t = xs[lo], xs[hi], pos - lo
+    return a + (b - a) * t if t < 0.5 else b - (b - a) * (1.0 - t)
+
+
+_percentile_90_sorted = _compiled(_percentile_90_sorted_loops)
+
+
+def _round_loops(
+    h, p, v, sub, inlier_cos, min_inliers, member_cos, radius_factor, cov_scale, min_var
+):  # pragma: no cover (compiled)
+    """One round of :func:`vote_instances` after its hypotheses h (K, 2) are drawn: the best
+    scored on the pixels ``sub`` (all where empty), its inliers, the fit over them and over the
+    strict inliers of that fit, the members. Returns (status, center (2,), cov (2, 2),
+    members (n,) bool): status 0 an instance, 1 too few inliers, 2 every inlier's line
+    parallel."""
+    n = p.shape[0]
+    if sub.shape[0] > 0:
+        ps = np.empty((sub.shape[0], 2))
+        vs = np.empty((sub.shape[0], 2))
+        for k in range(sub.shape[0]):
+            ps[k, 0], ps[k, 1] = p[sub[k], 0], p[sub[k], 1]
+            vs[k, 0], vs[k, 1] = v[sub[k], 0], v[sub[k], 1]
+        counts = _count_inliers(h, ps, vs, inlier_cos)
+    else:
+        counts = _count_inliers(h, p, v, inlier_cos)
+    best = 0
+    for k in range(1, counts.shape[0]):
+        if counts[k] > counts[best]:
+            best = k
+    cos, _ = _cos_and_distance(h[best], p, v)
+    inliers = cos > inlier_cos
+    members = np.zeros(n, np.bool_)
+    cov = np.zeros((2, 2))
+    if inliers.sum() < min_inliers:
+        return 1, np.zeros(2), cov, members
+    center, A, sigma2, solved = _line_fit(p, v, inliers)
+    if not solved:
+        return 2, center, cov, members
+    cos, dist = _cos_and_distance(center, p, v)
+    strict = cos > inlier_cos
+    n_strict = strict.sum()
+    if n_strict >= min_inliers:
+        same = True
+        for k in range(n):
+            if strict[k] != inliers[k]:
+                same = False
+                break
+        if not same:
+            c2, A2, s2, ok = _line_fit(p, v, strict)
+            if ok:
+                center, A, sigma2 = c2, A2, s2
+    core = dist[strict] if n_strict >= min_inliers else dist[inliers]
+    radius = radius_factor * _percentile_90_sorted(core) + 2.0
+    for k in range(n):
+        members[k] = (((cos[k] > member_cos) or inliers[k]) and dist[k] <= radius) or (
+            dist[k] < 3.0
+        )
+    f = sigma2 / (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0])
+    cov[0, 0] = (f * A[1, 1]) * cov_scale + min_var
+    cov[0, 1] = (f * -A[0, 1]) * cov_scale + 0.0
+    cov[1, 0] = (f * -A[1, 0]) * cov_scale + 0.0
+    cov[1, 1] = (f * A[0, 0]) * cov_scale + min_var
+    return 0, center, cov, members
+
+
+_round = _compiled(_round_loops)
+
+
+def _labelled_pixels_loops(logit, vectors):  # pragma: no cover (compiled)
+    """((n, 2) pixel (x, y), (n, 2) vectors) of the cells of logit (g, g) above 0, row by row
+    (np.nonzero's order), both float64; vectors (2, g, g)."""
+    n = 0
+    for y in range(logit.shape[0]):
+        for x in range(logit.shape[1]):
+            if logit[y, x] > 0:
+                n += 1
+    pix = np.empty((n, 2))
+    vec = np.empty((n, 2))
+    k = 0
+    for y in range(logit.shape[0]):
+        for x in range(logit.shape[1]):
+            if logit[y, x] > 0:
+                pix[k, 0], pix[k, 1] = x, y
+                vec[k, 0], vec[k, 1] = vectors[0, y, x], vectors[1, y, x]
+                k += 1
+    return pix, vec
+
+
+_labelled_pixels_compiled = _compiled(_labelled_pixels_loops)
+
+
+def labelled_pixels(logit: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The cells a crop's output labels as its part, and their vectors.
+
+    Args:
+        logit: (g, g) the object logit; a cell above 0 is the part's.
+        vectors: (2, g, g) the unit vectors (float32 from the network; another float type
+            compiles its own loop).
+    Returns:
+        (n, 2) float64 cell (x, y) and (n, 2) float64 vectors, row by row (np.nonzero's order).
+    """
+    return _labelled_pixels_compiled(np.ascontiguousarray(logit), np.ascontiguousarray(vectors))
 
 
 # a vector this far from unit length comes from a network whose own normalisation was rounded
@@ -210,12 +314,29 @@ def _covariance(A: np.ndarray, sigma2: float) -> np.ndarray:
 UNIT_TOLERANCE = 1e-3
 
 
+def _all_unit_loops(vectors, tolerance):  # pragma: no cover (compiled)
+    """Whether every row of vectors (n, 2) has a length within ``tolerance`` of 1 (the length
+    as ``np.linalg.norm(vectors, axis=1)`` computes it)."""
+    for k in range(vectors.shape[0]):
+        if (
+            not abs(math.sqrt(vectors[k, 0] * vectors[k, 0] + vectors[k, 1] * vectors[k, 1]) - 1.0)
+            <= tolerance
+        ):
+            return False
+    return True
+
+
+_all_unit = _compiled(_all_unit_loops)
+
+
 def _unit(vectors: np.ndarray) -> np.ndarray:
-    """(n, 2) the vectors as they are when every one is unit to UNIT_TOLERANCE (a float model's,
-    to its rounding: left bit for bit), else each divided by its length."""
-    norms = np.linalg.norm(vectors, axis=1)
-    if not len(norms) or np.all(np.abs(norms - 1.0) <= UNIT_TOLERANCE):
+    """(n, 2) float64 C-contiguous: the vectors as they are when every one is unit to
+    UNIT_TOLERANCE (a float model's, to its rounding: left bit for bit), else each divided by
+    its length."""
+    vectors = np.ascontiguousarray(vectors, np.float64)
+    if _all_unit(vectors, UNIT_TOLERANCE):
         return vectors
+    norms = np.linalg.norm(vectors, axis=1)
     return vectors / np.maximum(norms, 1e-6)[:, None]
 
 
@@ -228,6 +349,9 @@ def _percentile_90(x: np.ndarray) -> float:
     part = np.partition(x, (lo, hi))
     a, b, t = float(part[lo]), float(part[hi]), pos - lo
     return a + (b - a) * t if t < 0.5 else b - (b - a) * (1.0 - t)
+
+
+_ALL = np.zeros(0, np.int64)  # no subset: every pixel scores the hypotheses
 
 
 def vote_instances(
@@ -247,7 +371,7 @@ def vote_instances(
     """
     rng = np.random.default_rng(seed)
     pixels_xy = np.ascontiguousarray(pixels_xy, np.float64)
-    vectors = np.ascontiguousarray(_unit(np.asarray(vectors, np.float64)))
+    vectors = _unit(vectors)
     remaining = np.arange(len(pixels_xy))
     out: list[VotedInstance] = []
     while len(remaining) >= config.min_inliers and len(out) < config.max_instances:
@@ -258,36 +382,31 @@ def vote_instances(
         if len(h) == 0:
             break
         # score on a random subset (the cost of a round stays bounded on large masks), then
-        # take the best hypothesis's inliers among all remaining pixels
+        # take the best hypothesis's inliers among all remaining pixels; the center comes from
+        # the pixels that agree with it closely, and again from those that agree with that
+        # center; the mask takes every pixel that points at it roughly (vectors near the center
+        # and at the rims are noisy), but only near it: a pixel of another part of the class
+        # far along the same line also points at it (measured: without this bound the boxes of
+        # parts in a pile were three times too large, and their pixels were lost to the first
+        # instance). All in :func:`_round_loops`.
         if len(p) > config.max_scoring_pixels:
             sub = rng.choice(len(p), config.max_scoring_pixels, replace=False)
-            counts = _count_inliers(h, p[sub], v[sub], config.inlier_cos)
         else:
-            counts = _count_inliers(h, p, v, config.inlier_cos)
-        best = int(np.argmax(counts))
-        cos, _ = _cos_and_distance(h[best], p, v)
-        inliers = cos > config.inlier_cos
-        if inliers.sum() < config.min_inliers:
+            sub = _ALL
+        status, center, cov, members = _round(
+            h,
+            p,
+            v,
+            sub,
+            float(config.inlier_cos),
+            int(config.min_inliers),
+            float(config.member_cos),
+            float(config.member_radius_factor),
+            float(config.cov_scale),
+            float(config.min_center_var),
+        )
+        if status:  # too few inliers, or their lines all parallel
             break
-        center, A, sigma2, solved = _line_fit(p, v, inliers)
-        if not solved:  # every inlier's line parallel: no point to vote for
-            break
-        # the center comes from the pixels that agree with it closely; the mask takes every
-        # pixel that points at it roughly (vectors near the center and at the rims are noisy)
-        cos, dist = _cos_and_distance(center, p, v)
-        strict = cos > config.inlier_cos
-        n_strict = int(strict.sum())
-        if n_strict >= config.min_inliers and not np.array_equal(strict, inliers):
-            fit = _line_fit(p, v, strict)
-            if fit[3]:
-                center, A, sigma2 = fit[:3]
-        # ... but only near it: a pixel of another part of the class far along the same line
-        # also points at it (measured: without this bound the boxes of parts in a pile were
-        # three times too large, and their pixels were lost to the first instance)
-        core = dist[strict] if n_strict >= config.min_inliers else dist[inliers]
-        radius = config.member_radius_factor * _percentile_90(core) + 2.0
-        members = (((cos > config.member_cos) | inliers) & (dist <= radius)) | (dist < 3.0)
-        cov = _covariance(A, sigma2) * config.cov_scale + np.eye(2) * config.min_center_var
         out.append(VotedInstance(center, cov, remaining[members], int(members.sum())))
         remaining = remaining[~members]
     return out
@@ -301,3 +420,4 @@ def compile_kernels() -> None:
     vectors = np.array([5.5, 5.5]) - pixels + 0.25
     vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
     vote_instances(pixels, vectors, VotingConfig(min_inliers=5), seed=0)
+    labelled_pixels(np.ones((4, 4), np.float32), np.zeros((2, 4, 4), np.float32))  # a network's

@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from posefuse.estimator.frontend.voting import (
+    UNIT_TOLERANCE,
     VotingConfig,
     _cos_and_distance,
     _count_inliers,
@@ -15,6 +16,10 @@ from posefuse.estimator.frontend.voting import (
     _intersections,
     _line_fit,
     _normal_equations,
+    _percentile_90,
+    _percentile_90_sorted,
+    _unit,
+    labelled_pixels,
     vote_instances,
 )
 
@@ -84,3 +89,99 @@ def test_lines_along_one_line_have_no_point_until_one_crosses_them():
     v[0] = [0.0, 1.0]
     x, _, _, solved = _line_fit(p, v, np.ones(30, bool))
     assert solved and np.isfinite(x).all()
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(0.0, 100.0), min_size=1, max_size=300))
+def test_the_compiled_percentile_is_the_partial_sorts_to_the_bit(values):
+    x = np.array(values)
+    assert _percentile_90_sorted(x) == _percentile_90(x)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 24), st.sampled_from([np.float32, np.float64]))
+def test_the_labelled_cells_are_nonzeros_in_its_order(seed, g, dtype):
+    rng = np.random.default_rng(seed)
+    logit = rng.normal(size=(g, g)).astype(dtype)
+    vectors = rng.normal(size=(2, g, g)).astype(dtype)
+    ys, xs = np.nonzero(logit > 0)
+    pix, vec = labelled_pixels(logit, vectors)
+    assert pix.dtype == vec.dtype == np.float64
+    assert np.array_equal(pix, np.stack([xs, ys], 1).astype(np.float64))
+    assert np.array_equal(vec, vectors[:, ys, xs].T.astype(np.float64))
+
+
+def test_vectors_off_unit_length_are_normalised_and_unit_ones_left_as_they_are():
+    p, v = _lines(3, 50)
+    assert np.array_equal(_unit(v), v)
+    scaled = v * 1.01  # beyond the tolerance: divided by its length
+    np.testing.assert_allclose(_unit(scaled), v, rtol=1e-12, atol=1e-12)
+    nearly = v * (1 + 0.5 * UNIT_TOLERANCE)  # within it: left bit for bit
+    assert np.array_equal(_unit(nearly), nearly)
+
+
+def _reference_vote(pixels, vectors, config, seed):
+    """The voting in numpy expressions (its code before the compiled loops), for the tests."""
+    rng = np.random.default_rng(seed)
+    remaining = np.arange(len(pixels))
+    out = []
+    while len(remaining) >= config.min_inliers and len(out) < config.max_instances:
+        p, v = pixels[remaining], vectors[remaining]
+        i = rng.integers(len(p), size=config.n_hypotheses)
+        j = rng.integers(len(p), size=config.n_hypotheses)
+        h = _intersections(p, v, i, j)
+        h = h[np.all(np.isfinite(h), axis=1)]
+        if len(h) == 0:
+            break
+        if len(p) > config.max_scoring_pixels:
+            sub = rng.choice(len(p), config.max_scoring_pixels, replace=False)
+        else:
+            sub = np.arange(len(p))
+        ps, vs = p[sub], v[sub]
+        dx = h[:, 0, None] - ps[None, :, 0]
+        dy = h[:, 1, None] - ps[None, :, 1]
+        norm = np.sqrt(dx * dx + dy * dy)
+        cos = (dx * vs[None, :, 0] + dy * vs[None, :, 1]) / np.maximum(norm, 1e-9)
+        d = h[int(np.argmax((cos > config.inlier_cos).sum(1)))][None] - p
+        inliers = (d * v).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-9) > config.inlier_cos
+        if inliers.sum() < config.min_inliers:
+            break
+        center, A, sigma2 = _normal_equations(p[inliers], v[inliers])
+        d = center[None] - p
+        dist = np.linalg.norm(d, axis=1)
+        cos = (d * v).sum(1) / np.maximum(dist, 1e-9)
+        strict = cos > config.inlier_cos
+        if strict.sum() >= config.min_inliers:
+            center, A, sigma2 = _normal_equations(p[strict], v[strict])
+        core = dist[strict] if strict.sum() >= config.min_inliers else dist[inliers]
+        radius = config.member_radius_factor * np.percentile(core, 90) + 2.0
+        members = (((cos > config.member_cos) | inliers) & (dist <= radius)) | (dist < 3.0)
+        cov = sigma2 * np.linalg.inv(A) * config.cov_scale + np.eye(2) * config.min_center_var
+        out.append((center, cov, remaining[members]))
+        remaining = remaining[~members]
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 4), st.floats(0.0, 0.05))
+def test_the_voting_finds_what_its_numpy_expressions_find(seed, n_parts, noise):
+    """Instances, their pixels and centers as the numpy reference finds them (centers and
+    covariances to rounding), on fields of up to four parts, more pixels than the scoring
+    subset included."""
+    rng = np.random.default_rng(seed)
+    centers = rng.uniform(10, 50, (n_parts, 2))
+    ys, xs = np.mgrid[0:60, 0:60]
+    pix = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+    owner = np.argmin(np.linalg.norm(pix[:, None] - centers[None], axis=2), axis=1)
+    near = np.linalg.norm(pix - centers[owner], axis=1) < 14
+    pix, owner = pix[near], owner[near]
+    vec = centers[owner] - pix + rng.normal(0, noise * 10, pix.shape)
+    vec /= np.maximum(np.linalg.norm(vec, axis=1, keepdims=True), 1e-9)
+    config = VotingConfig()
+    want = _reference_vote(pix, vec, config, seed)
+    got = vote_instances(pix, vec, config, seed)
+    assert len(got) == len(want) >= 1
+    for g, (center, cov, members) in zip(got, want, strict=True):
+        assert np.array_equal(g.pixels, members)
+        np.testing.assert_allclose(g.center, center, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(g.cov, cov, rtol=1e-9, atol=1e-15)
