@@ -2,6 +2,7 @@
 
 python -m posefuse.bench.frontend_speed --dataset DIR [--dataset DIR ...]
     [--model models/robi_like.onnx] [--frames 30] [--threads 2] [--spin] [--repeat 1]
+    [--refine-min-offset F]
 
 For each frame: the whole front end as it runs (``NetworkFrontend.detect``), and stage one
 alone (pre-processing, the box detector and its peaks); stage two is the rest (crops, the crop
@@ -11,12 +12,14 @@ the front end with onnxruntime's threads spinning after each run (its own defaul
 sleeping (``NetworkFrontend``'s). ``--repeat N`` times each frame N times and keeps the
 fastest of each part: on a shared machine whose neighbours take the cores now and then, the
 least time is the front end's own (the medians of single runs moved by 10 to 40% between two
-runs of the same code).
+runs of the same code). ``--refine-min-offset`` times another ``refine_min_offset`` than the
+card's.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
@@ -54,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--repeat", type=int, default=1, help="time each frame this often, keep the fastest"
     )
+    parser.add_argument("--refine-min-offset", type=float, default=None)
     args = parser.parse_args(argv)
     if args.repeat < 1 or args.frames < 1:
         parser.error("--repeat and --frames must be at least 1")
@@ -61,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     for root in args.dataset:
         ds = load_dataset(root)
         frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads, spin=args.spin)
+        if args.refine_min_offset is not None:
+            frontend.two_stage = dataclasses.replace(
+                frontend.two_stage, refine_min_offset=args.refine_min_offset
+            )
         views = list(ds.views())[: args.frames]
         images = [ds.scene(v.scene_id).load_rgb(v.im_id) for v in views]
         frontend.detect(images[0])  # warm-up

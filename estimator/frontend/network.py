@@ -41,6 +41,7 @@ from posefuse.estimator.frontend.two_stage import (
     TwoStageConfig,
     box_masks,
     crop_boxes,
+    crop_side,
     decode_boxes,
     detection_of,
     suppress_duplicates,
@@ -319,11 +320,21 @@ class NetworkFrontend:
         votes = self.stage_two_votes(image, boxes, rng)
         for _ in range(config.refine_passes):
             # crop again around each voted center: the part is then the one the crop is
-            # centred on, as stage two was trained to expect
+            # centred on, as stage two was trained to expect (a vote whose crop is centred on
+            # it already, within ``refine_min_offset`` of the crop's side, is kept as it is)
             kept = [(b, v) for b, v in zip(boxes, votes, strict=True) if v is not None]
             boxes = [Box(b.class_index, v.center, b.size, b.score) for b, v in kept]
-            again = self.stage_two_votes(image, boxes, rng)
-            votes = [a if a is not None else v for a, (_, v) in zip(again, kept, strict=True)]
+            least = [config.refine_min_offset * crop_side(b, config) for b, _ in kept]
+            again_at = [
+                k
+                for k, ((b, v), d) in enumerate(zip(kept, least, strict=True))
+                if np.linalg.norm(v.center - b.center) >= d
+            ]
+            again = self.stage_two_votes(image, [boxes[k] for k in again_at], rng)
+            votes = [v for _, v in kept]
+            for k, a in zip(again_at, again, strict=True):
+                if a is not None:
+                    votes[k] = a
         # masks only for the last pass's votes (drawing them was a third of stage two's time)
         obj_ids = self._obj_ids
         dets = [

@@ -39,6 +39,9 @@ class TwoStageConfig:
     min_votes: int = 10  # object pixels (crop output cells) a center needs
     duplicate_factor: float = 0.3  # same-class centers closer than this x box side: one part
     refine_passes: int = 0  # stage two again on crops centred on its own centers
+    # ... except for a vote within this share of its crop's side from the crop's center: its
+    # crop is already centred on it (0: every vote is cropped again)
+    refine_min_offset: float = 0.0
     box_channel: bool = False  # stage two takes the box as a fourth input channel
 
 
@@ -82,13 +85,17 @@ def decode_boxes(out: np.ndarray, input_scale: float, config: TwoStageConfig) ->
     return boxes
 
 
+def crop_side(box: Box, config: TwoStageConfig) -> float:
+    """The side, in image pixels, of the square crop stage two cuts around ``box``."""
+    return max(config.box_scale * float(box.size.max()), config.min_crop_side)
+
+
 def crop_boxes(image: np.ndarray, boxes: list[Box], config: TwoStageConfig):
     """(crops (N, S, S, 3) uint8, transforms [(a, b)]) of the boxes, each square and centred."""
     S = config.crop_size
     crops, transforms = [], []
     for box in boxes:
-        side = max(config.box_scale * float(box.size.max()), config.min_crop_side)
-        a, b = crop_transform(box.center, side, S)
+        a, b = crop_transform(box.center, crop_side(box, config), S)
         crops.append(warp_crop(image, a, b, S, cv2.INTER_LINEAR))
         transforms.append((a, b))
     return (np.stack(crops) if crops else np.zeros((0, S, S, 3), np.uint8)), transforms

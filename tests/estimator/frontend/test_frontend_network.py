@@ -204,6 +204,48 @@ def test_sleeping_threads_find_what_spinning_ones_find(full_res_dataset, robi_ca
         assert np.array_equal(x.center_cov, y.center_cov)
 
 
+def _same_detections(a, b) -> bool:
+    return len(a) == len(b) and all(
+        x.obj_id == y.obj_id
+        and x.score == y.score
+        and np.array_equal(x.center_uv, y.center_uv)
+        and np.array_equal(x.mask, y.mask)
+        for x, y in zip(a, b, strict=True)
+    )
+
+
+def test_a_vote_its_crop_is_centred_on_is_not_cropped_again(full_res_dataset, robi_catalog):
+    """``refine_min_offset``: the refinement pass cuts a second crop only around votes at least
+    that share of their crop's side from its center. At 0 every vote is cut again (the card's
+    behaviour before the setting); beyond any offset none is, which is no refinement pass at
+    all, to the bit; in between, fewer crops."""
+    dataset = load_dataset(full_res_dataset)
+    views = list(dataset.views())[:2]
+    images = [dataset.scene(v.scene_id).load_rgb(v.im_id) for v in views]
+    frontend = NetworkFrontend(DEFAULT_MODEL, robi_catalog)
+    crops = []
+    run = frontend.crop_infer
+    frontend.crop_infer = lambda x, masks=None: crops.append(len(x)) or run(x, masks)
+    base = frontend.two_stage
+    assert base.refine_passes == 1
+
+    def detect(**kw):
+        frontend.two_stage = dataclasses.replace(base, **kw)
+        crops.clear()
+        dets = [frontend.detect(image) for image in images]
+        return dets, sum(crops)
+
+    every, n_every = detect(refine_min_offset=0.0)
+    none, n_none = detect(refine_min_offset=10.0)
+    unrefined, n_unrefined = detect(refine_passes=0)
+    some, n_some = detect(refine_min_offset=0.05)
+    assert all(_same_detections(a, b) for a, b in zip(none, unrefined, strict=True))
+    assert n_none == n_unrefined < n_some < n_every
+    assert sum(map(len, every)) > 0 and not all(
+        _same_detections(a, b) for a, b in zip(every, unrefined, strict=True)
+    )
+
+
 def test_bad_input_gives_one_clear_error(robi_catalog, tmp_path):
     """The shipped model (no torch needed): wrong images, a missing, foreign or damaged model."""
     model = Path(DEFAULT_MODEL)
