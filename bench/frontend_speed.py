@@ -61,11 +61,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.repeat < 1 or args.frames < 1:
         parser.error("--repeat and --frames must be at least 1")
+    if args.refine_min_offset is not None and not args.refine_min_offset >= 0:
+        parser.error("--refine-min-offset must be at least 0")
     buckets: dict[str, list[dict]] = {"1-10": [], "11-20": [], "21+": []}
     for root in args.dataset:
         ds = load_dataset(root)
         frontend = NetworkFrontend(args.model, ds.catalog, threads=args.threads, spin=args.spin)
         if args.refine_min_offset is not None:
+            if frontend.crop_session is None:
+                parser.error(f"--refine-min-offset: {args.model} is a one-stage model")
             frontend.two_stage = dataclasses.replace(
                 frontend.two_stage, refine_min_offset=args.refine_min_offset
             )

@@ -42,6 +42,8 @@ def warp_crop(
     may be a memory map)."""
     H, W = image.shape[:2]
     bx, by, a = float(b[0]), float(b[1]), float(a)
+    if not (math.isfinite(bx) and math.isfinite(by) and math.isfinite(a)):
+        raise ValueError(f"warp_crop: the crop's transform must be finite, got a={a}, b={b}")
     x0 = min(max(math.floor(bx) - 1, 0), W - 1)
     y0 = min(max(math.floor(by) - 1, 0), H - 1)
     x1 = min(max(math.ceil(bx + a * size) + 2, x0 + 1), W)

@@ -59,9 +59,13 @@ class Detection:
             raise ValueError(f"Detection: bbox width and height must be positive, got {bbox}")
         a, b, c, d = values[6:]
         atol = 1e-9 * max(1.0, abs(a), abs(b), abs(c), abs(d))
-        if abs(b - c) > atol + 1e-5 * max(abs(b), abs(c)):  # np.allclose both ways round
+        # np.allclose(cov, cov.T) tests b against c and c against b, each relative to the other
+        if abs(b - c) > atol + 1e-5 * min(abs(b), abs(c)):
             raise ValueError("Detection: center_cov must be symmetric")
-        if not (a > 0 and a * d - c * c > 0):  # of its lower triangle, as eigvalsh reads it
+        # of its lower triangle, as eigvalsh reads it, scaled so that no product overflows
+        scale = max(abs(a), abs(c), abs(d))
+        a, c, d = (a / scale, c / scale, d / scale) if scale > 0 else (0.0, 0.0, 0.0)
+        if not (a > 0 and a * d - c * c > 0):
             raise ValueError("Detection: center_cov must be positive definite")
         if self.mask is not None and (self.mask.ndim != 2 or self.mask.dtype != bool):
             raise ValueError("Detection: mask must be a 2D bool array")

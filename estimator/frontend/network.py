@@ -179,9 +179,12 @@ class NetworkFrontend:
         self.crop_session = None
         if self.card.kind == "two_stage":
             fields = {f.name for f in dataclasses.fields(TwoStageConfig)}
-            self.two_stage = TwoStageConfig(
-                **{k: v for k, v in self.card.two_stage.items() if k in fields}
-            )
+            try:
+                self.two_stage = TwoStageConfig(
+                    **{k: v for k, v in self.card.two_stage.items() if k in fields}
+                )
+            except (TypeError, ValueError) as exc:
+                raise ModelError(self.model_path, f"its card's two_stage settings: {exc}") from None
             crop_path = self.model_path.parent / str(self.card.two_stage.get("crop_model", ""))
             if not crop_path.is_file():
                 raise ModelError(crop_path, "the crop model of this two-stage card is missing")

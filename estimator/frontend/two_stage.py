@@ -17,6 +17,7 @@ All functions take and return image pixels (pixel-center coordinates).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -43,6 +44,15 @@ class TwoStageConfig:
     # crop is already centred on it (0: every vote is cropped again)
     refine_min_offset: float = 0.0
     box_channel: bool = False  # stage two takes the box as a fourth input channel
+
+    def __post_init__(self) -> None:
+        if self.refine_passes < 0 or not (
+            math.isfinite(self.refine_min_offset) and self.refine_min_offset >= 0
+        ):
+            raise ValueError(
+                "TwoStageConfig: refine_passes and refine_min_offset must be at least 0 (and "
+                f"finite), got {self.refine_passes}, {self.refine_min_offset}"
+            )
 
 
 @dataclass(frozen=True, eq=False)

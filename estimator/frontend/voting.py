@@ -17,9 +17,12 @@ The arithmetic of a round runs in compiled loops (numba): the hypotheses
 at a time, and give the same bits without the temporaries of (hypotheses x pixels) arrays; the
 line fit (:func:`_line_fit`) sums row by row and solves its 2 x 2 system in closed form, where
 numpy's BLAS sums in an order of its own and LAPACK pivots, so it agrees with the numpy
-reference (:func:`_normal_equations`) to rounding (1e-13 px on the shipped model's crops), not to
-the bit. Those small numpy calls were most of a crop's voting time (0.6 of 0.9 ms). The fit is
-not made again over the same pixels, and an instance's covariance is formed once, from its last fit.
+reference (:func:`_normal_equations`) to rounding (centres within 4.5e-13 px on the shipped
+model's crops), not to the bit. Those small numpy calls were most of a crop's voting time (0.6
+of 0.9 ms). The fit is not made again over the same pixels, and an instance's covariance is
+formed once, from its last fit. Inliers whose lines are all parallel to rounding (no point to
+vote for; ``np.linalg.solve`` raised there, or gave one a million pixels away) are set aside
+and the search goes on.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+
+from posefuse.estimator.core.compiled import as_f64, as_plain, compiled
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,32 @@ class VotingConfig:
     max_scoring_pixels: int = 400  # hypotheses are scored on a random subset of this size
     member_cos: float = 0.9  # looser: the pixels that make the instance's mask (about 25 deg)
     member_radius_factor: float = 1.3  # x the 90th percentile of the inliers' distances
+
+    def __post_init__(self) -> None:
+        if self.n_hypotheses < 1 or self.max_instances < 1 or self.max_scoring_pixels < 1:
+            raise ValueError(
+                "VotingConfig: n_hypotheses, max_instances and max_scoring_pixels must be at "
+                f"least 1, got {self.n_hypotheses}, {self.max_instances}, "
+                f"{self.max_scoring_pixels}"
+            )
+        if self.min_inliers < 3:  # a point from lines needs two, its spread a third
+            raise ValueError(
+                f"VotingConfig: min_inliers must be at least 3, got {self.min_inliers}"
+            )
+        if not (0.0 < self.inlier_cos < 1.0 and -1.0 < self.member_cos < 1.0):
+            raise ValueError(
+                "VotingConfig: inlier_cos must lie in (0, 1) and member_cos in (-1, 1), got "
+                f"{self.inlier_cos}, {self.member_cos}"
+            )
+        scales = (self.cov_scale, self.member_radius_factor)
+        if not all(math.isfinite(x) and x > 0 for x in scales) or not (
+            math.isfinite(self.min_center_var) and self.min_center_var >= 0
+        ):
+            raise ValueError(
+                "VotingConfig: cov_scale and member_radius_factor must be positive and "
+                f"min_center_var at least 0, got {self.cov_scale}, {self.member_radius_factor}, "
+                f"{self.min_center_var}"
+            )
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,15 +119,6 @@ def _least_squares_center(p: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.
     return x, sigma2 * np.linalg.inv(A)
 
 
-def _compiled(fn):
-    """``fn`` compiled and kept in numba's disk cache; compiled anew in each process where no
-    cache folder can be written."""
-    try:
-        return njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True)(fn)
-
-
 def _count_inliers_loops(h, ps, vs, inlier_cos):  # pragma: no cover (compiled)
     """(K,) int64: for each hypothesis h[k] (K, 2), the pixels ps (n, 2) whose unit vector vs
     (n, 2) points at it within ``inlier_cos``: the numpy expression's operations, in its order
@@ -116,8 +137,9 @@ def _count_inliers_loops(h, ps, vs, inlier_cos):  # pragma: no cover (compiled)
 
 
 def _cos_and_distance_loops(point, p, v):  # pragma: no cover (compiled)
-    """((n,) cos, (n,) distance) of the offsets d = point - p[k] (p, v: (n, 2)): the angle's
-    cosine to each unit vector v[k], (d . v) / max(|d|, 1e-9), and |d|, in numpy's order."""
+    """((n,) cos, (n,) distance) of the offsets d = point - p[k] (point (2,); p, v (n, 2)): the
+    angle's cosine to each unit vector v[k], (d . v) / max(|d|, 1e-9), and |d|, in numpy's
+    order."""
     n = p.shape[0]
     cos = np.empty(n)
     dist = np.empty(n)
@@ -131,8 +153,8 @@ def _cos_and_distance_loops(point, p, v):  # pragma: no cover (compiled)
 
 
 def _finite_intersections_loops(p, v, i, j):  # pragma: no cover (compiled)
-    """The finite rows of :func:`_intersections` (p, v: (n, 2); i, j: (K,) int), in order:
-    the same operations one pair at a time."""
+    """(m, 2) the finite rows of :func:`_intersections` (p, v: (n, 2); i, j: (K,) int), in
+    order: the same operations one pair at a time."""
     h = np.empty((i.shape[0], 2))
     m = 0
     for k in range(i.shape[0]):
@@ -154,9 +176,10 @@ def _finite_intersections_loops(p, v, i, j):  # pragma: no cover (compiled)
 
 
 def _line_fit_loops(p, v, use):  # pragma: no cover (compiled)
-    """:func:`_normal_equations` over the rows where ``use`` (n,) is true, summed one row at a
-    time and solved in closed form: (x (2,), A (2, 2), sigma2, solved); ``solved`` is False
-    where the lines are all parallel (A singular)."""
+    """:func:`_normal_equations` over the rows of p, v (n, 2) where ``use`` (n,) is true, summed
+    one row at a time and solved in closed form: (x (2,), A (2, 2), sigma2, solved); ``solved``
+    is False where the lines are all parallel to rounding (A singular: ``np.linalg.solve``
+    raised, or gave a point a million pixels away) or the point lies beyond floating point."""
     n = 0
     s00 = s01 = s11 = sp0 = sp1 = svp0 = svp1 = 0.0
     for k in range(p.shape[0]):
@@ -177,11 +200,17 @@ def _line_fit_loops(p, v, use):  # pragma: no cover (compiled)
     A[1, 1] = n - s11
     x = np.zeros(2)
     det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-    if not det > 1e-12 * max(A[0, 0] * A[1, 1], 1e-300):
+    trace = A[0, 0] + A[1, 1]
+    # singular to rounding, whatever the lines' direction: the eigenvalues' ratio, about
+    # det / trace^2, below 1e-12 (lines within a microradian of parallel meet a million
+    # pixels away, if at all)
+    if not det > 1e-12 * trace * trace:
         return x, A, 0.0, False
     b0, b1 = sp0 - svp0, sp1 - svp1
     x[0] = (A[1, 1] * b0 - A[0, 1] * b1) / det
     x[1] = (A[0, 0] * b1 - A[1, 0] * b0) / det
+    if not (math.isfinite(x[0]) and math.isfinite(x[1])):
+        return x, A, 0.0, False
     rr = 0.0
     for k in range(p.shape[0]):
         if not use[k]:
@@ -193,10 +222,10 @@ def _line_fit_loops(p, v, use):  # pragma: no cover (compiled)
     return x, A, rr / max(n - 2, 1), True
 
 
-_count_inliers = _compiled(_count_inliers_loops)
-_cos_and_distance = _compiled(_cos_and_distance_loops)
-_finite_intersections = _compiled(_finite_intersections_loops)
-_line_fit = _compiled(_line_fit_loops)
+_count_inliers = compiled(_count_inliers_loops)
+_cos_and_distance = compiled(_cos_and_distance_loops)
+_finite_intersections = compiled(_finite_intersections_loops)
+_line_fit = compiled(_line_fit_loops)
 
 
 def _percentile_90_sorted_loops(x):  # pragma: no cover (compiled)
@@ -209,7 +238,7 @@ def _percentile_90_sorted_loops(x):  # pragma: no cover (compiled)
     return a + (b - a) * t if t < 0.5 else b - (b - a) * (1.0 - t)
 
 
-_percentile_90_sorted = _compiled(_percentile_90_sorted_loops)
+_percentile_90_sorted = compiled(_percentile_90_sorted_loops)
 
 
 def _round_loops(
@@ -217,9 +246,10 @@ def _round_loops(
 ):  # pragma: no cover (compiled)
     """One round of :func:`vote_instances` after its hypotheses h (K, 2) are drawn: the best
     scored on the pixels ``sub`` (all where empty), its inliers, the fit over them and over the
-    strict inliers of that fit, the members. Returns (status, center (2,), cov (2, 2),
-    members (n,) bool): status 0 an instance, 1 too few inliers, 2 every inlier's line
-    parallel."""
+    strict inliers of that fit, the members; p, v (n, 2), sub (m,) int. Returns (status,
+    center (2,), cov (2, 2), members (n,) bool): status 0 an instance and its members, 1 too few
+    inliers, 2 the inliers' lines all parallel (members: those inliers, which then vote for
+    nothing)."""
     n = p.shape[0]
     if sub.shape[0] > 0:
         ps = np.empty((sub.shape[0], 2))
@@ -242,7 +272,7 @@ def _round_loops(
         return 1, np.zeros(2), cov, members
     center, A, sigma2, solved = _line_fit(p, v, inliers)
     if not solved:
-        return 2, center, cov, members
+        return 2, center, cov, inliers
     cos, dist = _cos_and_distance(center, p, v)
     strict = cos > inlier_cos
     n_strict = strict.sum()
@@ -270,7 +300,7 @@ def _round_loops(
     return 0, center, cov, members
 
 
-_round = _compiled(_round_loops)
+_round = compiled(_round_loops)
 
 
 def _labelled_pixels_loops(logit, vectors):  # pragma: no cover (compiled)
@@ -293,7 +323,7 @@ def _labelled_pixels_loops(logit, vectors):  # pragma: no cover (compiled)
     return pix, vec
 
 
-_labelled_pixels_compiled = _compiled(_labelled_pixels_loops)
+_labelled_pixels_compiled = compiled(_labelled_pixels_loops)
 
 
 def labelled_pixels(logit: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -306,7 +336,7 @@ def labelled_pixels(logit: np.ndarray, vectors: np.ndarray) -> tuple[np.ndarray,
     Returns:
         (n, 2) float64 cell (x, y) and (n, 2) float64 vectors, row by row (np.nonzero's order).
     """
-    return _labelled_pixels_compiled(np.ascontiguousarray(logit), np.ascontiguousarray(vectors))
+    return _labelled_pixels_compiled(as_plain(logit), as_plain(vectors))
 
 
 # a vector this far from unit length comes from a network whose own normalisation was rounded
@@ -326,14 +356,14 @@ def _all_unit_loops(vectors, tolerance):  # pragma: no cover (compiled)
     return True
 
 
-_all_unit = _compiled(_all_unit_loops)
+_all_unit = compiled(_all_unit_loops)
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:
     """(n, 2) float64 C-contiguous: the vectors as they are when every one is unit to
     UNIT_TOLERANCE (a float model's, to its rounding: left bit for bit), else each divided by
     its length."""
-    vectors = np.ascontiguousarray(vectors, np.float64)
+    vectors = as_f64(vectors)
     if _all_unit(vectors, UNIT_TOLERANCE):
         return vectors
     norms = np.linalg.norm(vectors, axis=1)
@@ -365,12 +395,14 @@ def vote_instances(
     Args:
         pixels_xy: (n, 2) pixel centres (x, y) of the class's pixels.
         vectors: (n, 2) unit vectors at those pixels.
-        Both are taken as float64.
     Returns:
         instances, best supported first.
+
+    Both inputs are taken as float64 (a float32 field is voted in float64, as the front end's
+    are: its network's float32 output is converted first).
     """
     rng = np.random.default_rng(seed)
-    pixels_xy = np.ascontiguousarray(pixels_xy, np.float64)
+    pixels_xy = as_f64(pixels_xy)
     vectors = _unit(vectors)
     remaining = np.arange(len(pixels_xy))
     out: list[VotedInstance] = []
@@ -405,8 +437,11 @@ def vote_instances(
             float(config.cov_scale),
             float(config.min_center_var),
         )
-        if status:  # too few inliers, or their lines all parallel
+        if status == 1:  # too few inliers
             break
+        if status == 2:  # inliers whose lines are all parallel point at no center: set aside
+            remaining = remaining[~members]
+            continue
         out.append(VotedInstance(center, cov, remaining[members], int(members.sum())))
         remaining = remaining[~members]
     return out

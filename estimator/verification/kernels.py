@@ -23,34 +23,12 @@ import math
 import numpy as np
 from numba import njit
 
+from posefuse.estimator.core.compiled import as_bool, as_f64, compiled
+
 __all__ = ["as_bool", "as_f64", "chamfer_costs", "compile_kernels", "data_term", "facing_sets"]
 
 
-def _plain(x, dtype) -> np.ndarray:
-    out = np.ascontiguousarray(x, dtype=dtype)
-    return out if out.flags.writeable else out.copy()
-
-
-def as_f64(x) -> np.ndarray:
-    """``x`` as a writeable C-contiguous float64 array: numba compiles a kernel once per
-    argument layout, dtype and writeability, so every caller passes these (a view such as
-    ``T[:, :3, :3]``, or a broadcast one, would otherwise compile a second version on first
-    use, seconds in the middle of a check)."""
-    return _plain(x, np.float64)
-
-
-def as_bool(x) -> np.ndarray:
-    """``x`` as a writeable C-contiguous bool array (see :func:`as_f64`)."""
-    return _plain(x, np.bool_)
-
-
-def _compiled(fn):
-    """``fn`` compiled, kept in numba's disk cache (beside this module, or the user's cache
-    folder); where neither can be written, compiled anew in each process instead of failing."""
-    try:
-        return njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return njit(nogil=True)(fn)
+_compiled = compiled  # the name this module's loops and its tests use
 
 
 @njit(nogil=True, inline="always")

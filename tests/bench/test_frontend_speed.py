@@ -14,10 +14,13 @@ def test_the_speed_benchmark_prints_each_dataset_and_bucket(full_res_dataset, ca
     line = next(x for x in out.splitlines() if x.startswith(str(full_res_dataset)))
     assert "(2 frames, 2 threads sleeping, fastest of 2)" in line
     numbers = dict(re.findall(r"(median|stage_one|stage_two) ([\d.]+)", line))
-    assert 0 < float(numbers["stage_one"]) <= float(numbers["median"])
+    assert set(numbers) == {"median", "stage_one", "stage_two"}
+    assert all(float(x) > 0 for x in numbers.values())
     assert re.search(r"frames with (1-10|11-20|21\+) detections", out)
 
 
-def test_the_speed_benchmark_refuses_no_repeats(full_res_dataset):
+@pytest.mark.parametrize("flag, value", [("--repeat", "0"), ("--refine-min-offset", "-1")])
+def test_the_speed_benchmark_refuses_what_it_cannot_time(full_res_dataset, flag, value, capsys):
     with pytest.raises(SystemExit):
-        frontend_speed.main(["--dataset", str(full_res_dataset), "--repeat", "0"])
+        frontend_speed.main(["--dataset", str(full_res_dataset), flag, value])
+    assert flag in capsys.readouterr().err

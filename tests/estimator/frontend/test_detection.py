@@ -68,6 +68,33 @@ def test_the_covariance_checks_decide_as_numpys_allclose_and_eigvalsh(values, sk
                 _detection(center_cov=cov)
 
 
+@pytest.mark.parametrize(
+    "cov",
+    [
+        # allclose's tolerance is 2e-6 + 1e-5 x the entry compared with: 0.010002 one way,
+        # 0.0100021 the other; an offset between the two is within it one way only
+        [[2000.0, 1000.0], [1000.01000205, 2000.0]],
+        [[2000.0, 1000.0], [1000.0 + 0.0095, 2000.0]],  # within it both ways
+        [[1e200, 5e199], [5e199, 1e200]],  # products beyond float64
+        [[1e-200, 0.0], [0.0, 1e-200]],  # products below it
+        [[1e-170, 5e-171], [5e-171, 1e-170]],
+        [[1e-200, 0.0], [0.0, -1e-200]],
+        [[0.0, 0.0], [0.0, 0.0]],
+    ],
+)
+def test_the_covariance_checks_decide_as_numpy_at_the_edges(cov):
+    cov = np.array(cov)
+    symmetric = np.allclose(cov, cov.T, atol=1e-9 * max(1.0, float(np.abs(cov).max())))
+    if not symmetric:
+        with pytest.raises(ValueError, match="symmetric"):
+            _detection(center_cov=cov)
+    elif np.linalg.eigvalsh(cov).min() > 0:
+        _detection(center_cov=cov)
+    else:
+        with pytest.raises(ValueError, match="positive definite"):
+            _detection(center_cov=cov)
+
+
 def test_an_asymmetric_or_infinite_covariance_is_refused():
     with pytest.raises(ValueError, match="symmetric"):
         _detection(center_cov=[[1.0, 0.5], [0.4, 1.0]])

@@ -219,6 +219,8 @@ def test_a_vote_its_crop_is_centred_on_is_not_cropped_again(full_res_dataset, ro
     that share of their crop's side from its center. At 0 every vote is cut again (the card's
     behaviour before the setting); beyond any offset none is, which is no refinement pass at
     all, to the bit; in between, fewer crops."""
+    from posefuse.estimator.frontend.network import image_seed
+
     dataset = load_dataset(full_res_dataset)
     views = list(dataset.views())[:2]
     images = [dataset.scene(v.scene_id).load_rgb(v.im_id) for v in views]
@@ -236,6 +238,31 @@ def test_a_vote_its_crop_is_centred_on_is_not_cropped_again(full_res_dataset, ro
         return dets, sum(crops)
 
     every, n_every = detect(refine_min_offset=0.0)
+    # at 0, the votes the refinement pass had before the setting: every kept vote cut again,
+    # in order, on the same random stream
+    from posefuse.estimator.frontend import network
+    from posefuse.estimator.frontend.two_stage import Box
+
+    drawn = []
+    draw = network.detection_of
+    network.detection_of = lambda v, *a: drawn.append(v) or draw(v, *a)
+    try:
+        detect(refine_min_offset=0.0)
+    finally:
+        network.detection_of = draw
+    frontend.two_stage = base
+    want = []
+    for image in images:
+        rng = np.random.default_rng([frontend.seed, image_seed(image)])
+        boxes = frontend.boxes(image)
+        votes = frontend.stage_two_votes(image, boxes, rng)
+        kept = [(b, v) for b, v in zip(boxes, votes, strict=True) if v is not None]
+        again = frontend.stage_two_votes(
+            image, [Box(b.class_index, v.center, b.size, b.score) for b, v in kept], rng
+        )
+        want += [a if a is not None else v for a, (_, v) in zip(again, kept, strict=True)]
+    assert len(drawn) == len(want) > 0
+    assert all(np.array_equal(d.center, w.center) for d, w in zip(drawn, want, strict=True))
     none, n_none = detect(refine_min_offset=10.0)
     unrefined, n_unrefined = detect(refine_passes=0)
     some, n_some = detect(refine_min_offset=0.05)
@@ -543,6 +570,14 @@ def test_each_class_is_found_at_its_own_scale(full_res_dataset, robi_catalog, tm
 def test_a_card_with_wrong_scale_factors_is_refused(robi_catalog, tmp_path, factors, message):
     with pytest.raises(ModelError, match=re.escape(message)):
         NetworkFrontend(_model_copy(tmp_path, class_scale_factors=factors), robi_catalog)
+
+
+@pytest.mark.parametrize("offset", [-0.5, float("nan")])
+def test_a_card_with_a_wrong_refinement_offset_is_refused_naming_it(robi_catalog, tmp_path, offset):
+    card = json.loads(Path(DEFAULT_MODEL).with_suffix(".json").read_text())
+    two_stage = {**card["two_stage"], "refine_min_offset": offset}
+    with pytest.raises(ModelError, match="refine_min_offset"):
+        NetworkFrontend(_model_copy(tmp_path, two_stage=two_stage), robi_catalog)
 
 
 def test_a_catalog_model_used_as_a_part_finds_each_part_once_as_obj_id_0(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -49,6 +50,27 @@ def test_crop_transform_centres_the_crop_and_warp_reads_it():
     assert np.allclose(a * np.array([19.5, 19.5]) + b, [70.0, 40.0])
     with pytest.raises(ValueError, match="positive"):
         crop_transform(np.zeros(2), 0.0, 40)
+    with pytest.raises(ValueError, match="finite"):
+        warp_crop(image, a, np.array([np.inf, 3.0]), 40, 0)
+
+
+@pytest.mark.parametrize("center", [(2.0, 3.0), (118.0, 97.0), (-30.0, 50.0), (60.0, 140.0)])
+def test_a_crop_over_the_images_border_repeats_the_border_as_a_copy_would(center):
+    """Crops are cut from a view of the image (rows read by their stride): at and beyond the
+    border the same pixels as from a contiguous copy of the region."""
+    image = np.random.default_rng(0).integers(0, 255, (100, 120, 3), np.uint8)
+    a, b = crop_transform(np.array(center), side=37.0, size=24)
+    got = warp_crop(image, a, b, 24, 1)
+    x0 = min(max(int(np.floor(b[0])) - 1, 0), 119)
+    y0 = min(max(int(np.floor(b[1])) - 1, 0), 99)
+    x1 = min(max(int(np.ceil(b[0] + a * 24)) + 2, x0 + 1), 120)
+    y1 = min(max(int(np.ceil(b[1] + a * 24)) + 2, y0 + 1), 100)
+    region = np.ascontiguousarray(image[y0:y1, x0:x1])
+    M = np.array([[a, 0.0, b[0] - x0], [0.0, a, b[1] - y0]])
+    want = cv2.warpAffine(
+        region, M, (24, 24), flags=1 | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+    )
+    assert np.array_equal(got, want)
 
 
 def test_detector_targets_decode_to_the_visible_boxes(view):

@@ -4,6 +4,7 @@ scores and the angles to a center to the bit, the line fit to rounding."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -18,6 +19,7 @@ from posefuse.estimator.frontend.voting import (
     _normal_equations,
     _percentile_90,
     _percentile_90_sorted,
+    _round,
     _unit,
     labelled_pixels,
     vote_instances,
@@ -185,3 +187,51 @@ def test_the_voting_finds_what_its_numpy_expressions_find(seed, n_parts, noise):
         assert np.array_equal(g.pixels, members)
         np.testing.assert_allclose(g.center, center, rtol=0, atol=1e-9)
         np.testing.assert_allclose(g.cov, cov, rtol=1e-9, atol=1e-15)
+
+
+def test_inliers_on_one_line_are_set_aside_and_the_search_goes_on():
+    """Pixels along one line, each pointing along it, and a few off it pointing away: every
+    hypothesis lies on the line and gathers only the line's parallel vectors, whose fit has no
+    point (``np.linalg.solve`` raised there). The round says so, and the voting sets those
+    pixels aside instead of failing; a part elsewhere is still found."""
+    line = np.stack([np.arange(30.0), np.zeros(30)], 1)
+    away = np.array([[10.0, 5.0], [20.0, -5.0], [30.0, 7.0], [40.0, -6.0], [5.0, 9.0]])
+    p = np.concatenate([line, away])
+    v = np.concatenate([np.tile([[1.0, 0.0]], (30, 1)), np.array([[0.6, 0.8]] * 5)])
+    v[30:, 1] *= np.sign(away[:, 1])  # away from the line
+    h = np.array([[45.0, 0.0]])
+    status, _, _, members = _round(h, p, v, np.zeros(0, np.int64), 0.99, 5, 0.9, 1.3, 1.0, 0.05)
+    assert status == 2 and members[:30].all() and not members[30:].any()
+    config = VotingConfig(min_inliers=5)
+    assert vote_instances(p, v, config, seed=0) == []
+    part, part_v = _lines(7, 120, spread=0.01)
+    found = vote_instances(np.concatenate([p, part + 60]), np.concatenate([v, part_v]), config, 0)
+    assert len(found) == 1 and np.linalg.norm(found[0].center - [80.0, 90.0]) < 1.0
+
+
+def test_a_voting_config_out_of_range_is_refused_naming_the_field():
+    for kw, field in [
+        (dict(min_inliers=2), "min_inliers"),
+        (dict(n_hypotheses=0), "n_hypotheses"),
+        (dict(inlier_cos=1.0), "inlier_cos"),
+        (dict(cov_scale=float("nan")), "cov_scale"),
+        (dict(min_center_var=-1.0), "min_center_var"),
+    ]:
+        with pytest.raises(ValueError, match=field):
+            VotingConfig(**kw)
+
+
+@pytest.mark.parametrize("spread", [1e-7, 1e-3])
+def test_whether_lines_meet_does_not_depend_on_their_direction(spread):
+    """The same bundle of lines turned by 0, 45 and 90 degrees: solved alike (a bundle within a
+    tenth of a microradian of parallel is not, one of a milliradian is)."""
+    rng = np.random.default_rng(1)
+    p = np.stack([np.arange(40.0), rng.normal(0, 3, 40)], 1)
+    angles = rng.normal(0, spread, 40)
+    solved = set()
+    for turn in (0.0, np.pi / 4, np.pi / 2):
+        c, s = np.cos(turn), np.sin(turn)
+        R = np.array([[c, -s], [s, c]])
+        v = np.stack([np.cos(angles), np.sin(angles)], 1) @ R.T
+        solved.add(bool(_line_fit(p @ R.T, v, np.ones(40, bool))[3]))
+    assert solved == {spread > 1e-5}
