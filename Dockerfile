@@ -16,8 +16,10 @@ COPY models models
 COPY recordings recordings
 # a regular install, as a wheel: the catalog, models and recordings go with it as package data
 RUN pip install --no-cache-dir .
-# the verification's compiled kernels, built now into numba's cache beside them (not at start-up)
-RUN python -c "from posefuse.estimator.verification.kernels import compile_kernels as c; c()"
+# the verification's and the front end's voting's compiled loops, built now into numba's cache
+# beside them (not at start-up)
+RUN python -c "from posefuse.estimator.verification.kernels import compile_kernels as c; c()" \
+    && python -c "from posefuse.estimator.frontend.voting import compile_kernels as c; c()"
 # template banks are built at start-up into this cache; mount a volume to keep them
 ENV POSEFUSE_CACHE=/cache
 # few malloc arenas: freed frame buffers go back to the system instead of staying per thread
