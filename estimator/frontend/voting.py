@@ -85,6 +85,11 @@ class VotedInstance:
     n_votes: int
 
 
+# The numpy forms of a round's steps (_intersections, _normal_equations, _least_squares_center,
+# _percentile_90): the voting runs the compiled loops below; these are what the tests hold
+# those loops to.
+
+
 def _intersections(p: np.ndarray, v: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """(K, 2) intersections of the lines (p_i, v_i) and (p_j, v_j); NaN where parallel."""
     a, b = v[i], -v[j]
@@ -371,8 +376,8 @@ def _unit(vectors: np.ndarray) -> np.ndarray:
 
 
 def _percentile_90(x: np.ndarray) -> float:
-    """np.percentile(x, 90) (linear interpolation) by partial sorting: numpy's general
-    percentile was an eighth of the voting time at these sizes."""
+    """np.percentile(x, 90) (linear interpolation) by partial sorting: the numpy reference
+    that :func:`_percentile_90_sorted`, which the voting runs, is held to in the tests."""
     pos = 0.9 * (len(x) - 1)
     lo = int(np.floor(pos))
     hi = min(lo + 1, len(x) - 1)
