@@ -2,7 +2,7 @@
 views of held-out scenes, fed live at a camera's rate, against the same frames fed offline.
 
 python -m posefuse.bench.daemon_accuracy --dataset DIR [--scenes 0 1 ...] [--rate 10]
-    [--first-stamp-s S] [--offline-only] [--check-every C]
+    [--first-stamp-s S] [--offline-only] [--check-every C] [--bin dataset|none]
 
 For each scene and each checkpoint (4 and 8 views), the daemon is reset and sent the scene's
 first views at ``--rate`` Hz, as a camera sends them (camera info, poses around each image,
@@ -16,7 +16,10 @@ the same frames with the same stamps, so the two differ only in when the verific
 The network's voting is seeded by each image's pixels, so the reference gives ``posefuse
 run-dataset --frontend network``'s figures on the same scenes. ``--check-every C`` runs the
 reference's verifications only after every C-th frame and the last, as a daemon that falls
-behind does: what the timing of the checks alone does to the final poses.
+behind does: what the timing of the checks alone does to the final poses. Where the dataset
+records its bin (``posefuse synth``'s ``synth.json``), both are told it as a cell would
+(``POSEFUSE_BIN_KNOWN`` and the ``POSEFUSE_NBV_BIN_*`` settings), as ``run-dataset`` uses it;
+``--bin none`` tells neither.
 """
 
 from __future__ import annotations
@@ -65,12 +68,42 @@ def _frames(dataset, scene_id: int, base_stamp: int):
         yield base_stamp + k * 100_000_000, scene.view(im_id), scene.load_rgb(im_id)
 
 
+def bin_settings(region) -> dict:
+    """The daemon's settings (Settings field -> value) that tell it the bin ``region`` (a
+    BinRegion, or None: none); ValueError for a bin turned in the world frame, which the
+    settings cannot say (they place a bin by its floor centre)."""
+    if region is None:
+        return {}
+    T = region.T_world_bin
+    if not np.allclose(T[:3, :3], np.eye(3)):
+        raise ValueError(
+            "the dataset's bin is turned in the world frame; the settings place a bin by its "
+            "floor centre only"
+        )
+    return {
+        "bin_known": True,
+        "nbv_bin_center": tuple(T[:3, 3].tolist()),
+        "nbv_bin_size": tuple(region.size),
+        "nbv_bin_wall_height": float(region.wall_height),
+    }
+
+
+def as_environment(settings: dict) -> dict[str, str]:
+    """Settings as the ``POSEFUSE_*`` environment variables of a daemon's process."""
+    return {f"POSEFUSE_{k.upper()}": json.dumps(v) for k, v in settings.items()}
+
+
 def offline(
-    dataset, scene_ids, stamps: dict[tuple[int, int], int], check_every: int = 1
+    dataset,
+    scene_ids,
+    stamps: dict[tuple[int, int], int],
+    check_every: int = 1,
+    overrides: dict | None = None,
 ) -> dict[int, list]:
     """The reference: per checkpoint, PoseResults of the daemon's worker run in this process on
     the scene's first views (stamps from ``stamps[(scene_id, checkpoint)]``), every waiting
-    verification run after every ``check_every``-th frame and after the last."""
+    verification run after every ``check_every``-th frame and after the last; ``overrides``:
+    the daemon's settings that differ from the defaults (:func:`bin_settings`)."""
     if check_every < 1:
         raise ValueError(f"check_every: must be at least 1, got {check_every}")
     from posefuse.estimator.core.objects import load_catalog
@@ -80,7 +113,7 @@ def offline(
     from posefuse.service.sync import SyncedFrame
     from posefuse.service.worker import EstimatorWorker, make_detector, tracker_config
 
-    settings = Settings()
+    settings = Settings(**(overrides or {}))
     catalog = load_catalog(settings.catalog)
     detect = make_detector(settings, catalog)
     results: dict[int, list] = {n: [] for n in CHECKPOINTS}
@@ -110,15 +143,22 @@ def _send(session, stamp: int, view, image) -> None:
     session.put(f"{root}/pose", encode_camera_pose(stamp + 1000, "cam0", view.T_world_cam))
 
 
-def live(dataset, scene_ids, stamps: dict[tuple[int, int], int], rate: float) -> tuple[dict, dict]:
-    """Per checkpoint, PoseResults of a ``posefuse serve`` fed at ``rate`` Hz; and how long the
+def live(
+    dataset,
+    scene_ids,
+    stamps: dict[tuple[int, int], int],
+    rate: float,
+    overrides: dict | None = None,
+) -> tuple[dict, dict]:
+    """Per checkpoint, PoseResults of a ``posefuse serve`` fed at ``rate`` Hz (``overrides``:
+    its settings that differ from the defaults, :func:`bin_settings`); and how long the
     verification went on after the last image (s), per checkpoint."""
     import zenoh
 
     results: dict[int, list] = {n: [] for n in CHECKPOINTS}
     drain: dict[int, list[float]] = {n: [] for n in CHECKPOINTS}
     dropped = dict.fromkeys(CHECKPOINTS, 0)
-    daemon, zport, base = start_daemon(CELL)
+    daemon, zport, base = start_daemon(CELL, env=as_environment(overrides or {}))
     try:
         with zenoh.open(peer_config(zport)) as session:
             time.sleep(1.0)
@@ -187,6 +227,12 @@ def main(argv: list[str] | None = None) -> int:
         metavar="C",
         help="the reference verifies after every C-th frame and the last (default 1: every frame)",
     )
+    parser.add_argument(
+        "--bin",
+        choices=("dataset", "none"),
+        default="dataset",
+        help="tell both the bin the dataset records (as run-dataset does), or none",
+    )
     args = parser.parse_args(argv)
     if args.check_every < 1:
         parser.error(f"--check-every: must be at least 1, got {args.check_every}")
@@ -202,10 +248,14 @@ def main(argv: list[str] | None = None) -> int:
     t0 = first_s * 1_000_000_000
     stamps = {run: t0 + 2_000_000_000 * k for k, run in enumerate(runs)}
     targets = {n: [(s, dataset.scene(s).im_ids[n - 1]) for s in scene_ids] for n in CHECKPOINTS}
-    got = {"offline": offline(dataset, scene_ids, stamps, args.check_every)}
+    try:
+        settings = bin_settings(dataset.bin if args.bin == "dataset" else None)
+    except ValueError as exc:
+        parser.error(f"--bin dataset: {exc}")
+    got = {"offline": offline(dataset, scene_ids, stamps, args.check_every, settings)}
     drain = {}
     if not args.offline_only:
-        got["live"], drain = live(dataset, scene_ids, stamps, args.rate)
+        got["live"], drain = live(dataset, scene_ids, stamps, args.rate, settings)
     summary: dict = {
         "dataset": args.dataset,
         "scenes": list(scene_ids),

@@ -50,10 +50,12 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def start_daemon(cell: str, parts: str | None = None) -> tuple[subprocess.Popen, int, str]:
+def start_daemon(
+    cell: str, parts: str | None = None, env: dict[str, str] | None = None
+) -> tuple[subprocess.Popen, int, str]:
     """``posefuse serve`` of ``cell`` on free loopback ports (with the part set ``parts`` of
-    ``posefuse onboard``, or the shipped catalog), once ready: (process, Zenoh port, HTTP base
-    URL)."""
+    ``posefuse onboard``, or the shipped catalog; ``env``: more ``POSEFUSE_*`` settings), once
+    ready: (process, Zenoh port, HTTP base URL)."""
     zport, hport = _free_port(), _free_port()
     daemon = subprocess.Popen(
         [sys.executable, "-m", "posefuse.cli", "serve", "--listen", f"tcp/127.0.0.1:{zport}"]
@@ -61,7 +63,7 @@ def start_daemon(cell: str, parts: str | None = None) -> tuple[subprocess.Popen,
         + (["--parts", parts] if parts else []),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        env={**os.environ, **(env or {}), "PYTHONUNBUFFERED": "1"},
     )
     base = f"http://127.0.0.1:{hport}"
     for _ in range(600):

@@ -315,6 +315,10 @@ def _cmd_run_dataset(args: argparse.Namespace) -> int:
     config = tracker_config(args.no_verify, args.no_refine, verification)
     if args.frontend == "network":
         config = config.with_card(card_settings(frontend.network.card.verification, verification))
+    region = dataset.bin if args.bin == "dataset" else None
+    config = dataclasses.replace(config, bin=region)
+    if not args.quiet:
+        print(f"bin: {'from the dataset' if region is not None else 'not used'}")
     out = Path(args.out)
     report = run_and_write(
         dataset,
@@ -532,6 +536,13 @@ def register(subparsers) -> None:
         help="replace a verification setting, e.g. mask_weight=2.0, settled_margin=none to "
         "verify at every new view, edges.KEY=V, turns.KEY=V (turns.enabled=0: the near-symmetric "
         "turns not judged) or refinement.KEY=V (repeatable; for tuning)",
+    )
+    p.add_argument(
+        "--bin",
+        choices=("dataset", "none"),
+        default="dataset",
+        help="the bin the parts lie in, as a cell that knows it gives it to the estimator: the "
+        "one the dataset records (synth.json; none recorded: not used), or none",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run_dataset)

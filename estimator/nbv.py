@@ -35,12 +35,13 @@ of ms (``python -m posefuse.bench.active --speed``).
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.geometry import invert, so3_exp
 from posefuse.estimator.core.objects import ObjectModel
@@ -73,20 +74,6 @@ class NbvConfig:
     def __post_init__(self) -> None:
         if self.center_sigma_px <= 0 or self.precision_rel <= 0 or self.max_components < 1:
             raise ValueError(f"invalid NBV config {self}")
-
-
-@dataclass(frozen=True, eq=False)
-class BinRegion:
-    """An open box the parts lie in: inner floor ``size`` (x, y) metres, walls ``wall_height``
-    high, its floor's centre at the origin of ``T_world_bin`` (4, 4) with z up."""
-
-    size: tuple[float, float] = (0.42, 0.32)
-    wall_height: float = 0.08
-    T_world_bin: np.ndarray = field(default_factory=lambda: np.eye(4))
-
-    def __post_init__(self) -> None:
-        if min(self.size) <= 0 or self.wall_height < 0:
-            raise ValueError(f"bin region: size and wall height must be positive: {self}")
 
 
 @dataclass(frozen=True, eq=False)

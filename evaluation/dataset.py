@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.errors import DatasetError, DatasetWarning
 from posefuse.estimator.core.geometry import invert
@@ -294,6 +295,25 @@ class BopDataset:
             return str(json.loads(path.read_text()).get("profile", "unknown"))
         except (OSError, ValueError, AttributeError):
             return "unknown"
+
+    @property
+    def bin(self) -> BinRegion | None:
+        """The bin the parts lie in, as ``posefuse synth`` recorded it (``synth.json``'s
+        ``bin``), else None (a dataset made elsewhere, or before synth recorded it). Raises
+        DatasetError naming the file when the record is malformed."""
+        path = self.root / "synth.json"
+        try:
+            record = json.loads(path.read_text())
+        except OSError:
+            return None
+        except ValueError as exc:
+            raise DatasetError(path, f"not JSON ({exc})") from None
+        if not isinstance(record, dict) or record.get("bin") is None:
+            return None
+        try:
+            return BinRegion.from_json(record["bin"])
+        except ValueError as exc:
+            raise DatasetError(path, f"'bin': {exc}") from None
 
     def scene(self, scene_id: int) -> BopScene:
         if scene_id not in self.scene_ids:

@@ -18,8 +18,6 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
-import numpy as np
-
 from posefuse.service.codec import (
     DecodeError,
     NbvRequest,
@@ -86,16 +84,13 @@ class Queries:
         what they would teach the estimator (estimator/nbv.py). ValueError when a candidate
         has no intrinsics and no camera info is known to give them."""
         from posefuse.estimator.nbv import (
-            BinRegion,
             CandidateView,
             default_candidates,
             score_candidates,
         )
 
         s = self.settings
-        T_world_bin = np.eye(4)
-        T_world_bin[:3, 3] = s.nbv_bin_center
-        region = BinRegion(tuple(s.nbv_bin_size), s.nbv_bin_wall_height, T_world_bin)
+        region = s.bin_region()
         camera = self.sync.camera(request.camera_id)
         needs_camera = request.candidates is None or any(
             c.camera is None for c in request.candidates

@@ -11,7 +11,7 @@ import os
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import (
     BaseSettings,
     JsonConfigSettingsSource,
@@ -105,12 +105,19 @@ class Settings(BaseSettings):
     reanchor_frames: int = 3  # late frames in a row after which a camera's clock re-anchors
     info_request_s: float = 1.0  # a camera without info is asked for it at most this often
 
-    # next-best-view (estimator/nbv.py): the bin the parts lie in (world frame, z up, the
-    # floor's centre at nbv_bin_center) and the default candidates' distances from it
+    # the bin the parts lie in (world frame, z up, the inner floor's centre at nbv_bin_center),
+    # for next-best-view (estimator/nbv.py), and the default candidates' distances from it
     nbv_bin_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     nbv_bin_size: tuple[float, float] = (0.42, 0.32)
     nbv_bin_wall_height: float = 0.08
     nbv_distances: tuple[float, ...] = (0.55, 0.75)
+    # the nbv_bin_* settings are where the cell's bin really stands: the estimator then founds
+    # no track, and keeps none, whose centre lies outside it (under its floor: detections of
+    # different parts that meet there; estimator/core/bin_region.py). Off by default: the
+    # defaults above are an example bin, not yours
+    bin_known: bool = Field(
+        False, description="the nbv_bin_* settings give the real bin: no part lies outside it"
+    )
 
     @field_validator("cells", "standby_cells", mode="before")
     @classmethod
@@ -118,6 +125,17 @@ class Settings(BaseSettings):
         if isinstance(v, str):
             v = [c.strip() for c in v.split(",") if c.strip()]
         return v
+
+    def bin_region(self):
+        """The bin of the ``nbv_bin_*`` settings (an
+        :class:`~estimator.core.bin_region.BinRegion`); ValueError when it is no bin."""
+        import numpy as np  # lazy: settings load without numpy
+
+        from posefuse.estimator.core.bin_region import BinRegion
+
+        T_world_bin = np.eye(4)
+        T_world_bin[:3, 3] = self.nbv_bin_center
+        return BinRegion(tuple(self.nbv_bin_size), self.nbv_bin_wall_height, T_world_bin)
 
     def served_cells(self) -> list[tuple[str, bool]]:
         """(cell, primary) of every cell this daemon serves or backs up, in order; ValueError
@@ -141,6 +159,14 @@ class Settings(BaseSettings):
         if v not in ("peer", "client", "router"):
             raise ValueError("mode must be peer, client or router")
         return v
+
+    @model_validator(mode="after")
+    def _bin(self):
+        try:
+            self.bin_region()
+        except ValueError as exc:
+            raise ValueError(f"nbv_bin_center, nbv_bin_size, nbv_bin_wall_height: {exc}") from None
+        return self
 
     @classmethod
     def settings_customise_sources(

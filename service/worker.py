@@ -187,12 +187,14 @@ class EstimatorWorker:
 def tracker_config(settings) -> TrackerConfig:
     """The service's estimator settings: verification as ``settings.verify`` says, deferred
     (the frame path never waits for it; see the module docstring), with the settings the
-    model's card gives for its masks (``ModelCard.verification``), and the turn judge as
-    ``settings.verify_turns`` says."""
+    model's card gives for its masks (``ModelCard.verification``), the bin of the settings
+    where ``settings.bin_known``, and the turn judge as ``settings.verify_turns`` says."""
     from posefuse.estimator.frontend.network import load_card
 
     config = TrackerConfig.with_verification(settings.verify, deferred=True)
     config = config.with_card(load_card(settings.model).verification)
+    if settings.bin_known:
+        config = dataclasses.replace(config, bin=settings.bin_region())
     if settings.verify_turns:
         return config
     verification = config.verification

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -138,9 +138,10 @@ def evaluate_profile(root: Path, model_path: Path, config, scene_ids=None, setup
         scene_ids=None if scene_ids is None else tuple(scene_ids),
         show_progress=False,
         rotation=True,
+        # the bin the renders recorded, as a cell that knows its bin gives it
         estimator_factory=lambda: MultiViewEstimator(
             dataset.catalog,
-            TrackerConfig().with_card(network.card.verification),
+            replace(TrackerConfig().with_card(network.card.verification), bin=dataset.bin),
             banks=shared.banks(),
         ),
     )

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.core.camera import Camera
 from posefuse.estimator.core.geometry import invert
 from posefuse.estimator.core.objects import Catalog
@@ -112,7 +113,7 @@ def generate_dataset(
 
 
 def write_synth_json(out: Path, config: SynthConfig) -> None:
-    """``synth.json``: how a dataset was rendered (its profile, seed and scenes)."""
+    """``synth.json``: how a dataset was rendered (its profile, seed, scenes and bin)."""
     spec = config.scene
     (Path(out) / "synth.json").write_text(
         json.dumps(
@@ -126,6 +127,9 @@ def write_synth_json(out: Path, config: SynthConfig) -> None:
                 "parts_per_scene": list(spec.parts_per_scene),
                 "view_pattern": spec.view_pattern,
                 "obj_ids": list(config.obj_ids) if config.obj_ids else None,
+                # the bin the parts were dropped into, as a cell that knows its bin would
+                # give it (run-dataset --bin dataset hands it to the estimator)
+                "bin": BinRegion(spec.bin.size, spec.bin.wall_height).to_json(),
             },
             indent=1,
         )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.rotation.matching import RotationConfig
 from posefuse.estimator.rotation.mixture import MixtureConfig
 from posefuse.estimator.rotation.templates import TemplateConfig
@@ -71,8 +72,20 @@ class TrackerConfig:
     # asked (MultiViewEstimator.check_next): the daemon runs them between frames, so a frame
     # never waits for them; checked after every update, the estimates are the same
     deferred_verification: bool = False
+    # the bin the parts lie in, where the cell knows it (world frame; None: not known). A
+    # founding pair that meets outside it, and a track whose centre leaves it, by more than
+    # ``bin_margin_frac`` of the part's diameter, is no part: in a pile, detections of
+    # different parts meet under the floor (estimator/core/bin_region.py)
+    bin: BinRegion | None = None
+    # chosen on the tuning piles (robi 4343, 4444) from 0.1, 0.25 and 0.5
+    # (docs/lab/2026-12-08-bin-floor-ghosts.md)
+    bin_margin_frac: float = 0.25
 
     def __post_init__(self) -> None:
+        if self.bin is not None and not isinstance(self.bin, BinRegion):
+            raise ValueError(f"bin must be a BinRegion or None, got {type(self.bin).__name__}")
+        if not self.bin_margin_frac >= 0:
+            raise ValueError(f"bin_margin_frac must be at least 0, got {self.bin_margin_frac}")
         if self.confirm_views < 1 or self.max_misses < 1 or self.max_misses_tentative < 1:
             raise ValueError(f"invalid tracker config: {self}")
         if self.translation_variance_dof is not None and not self.translation_variance_dof >= 0:

@@ -57,3 +57,31 @@ def test_missing_and_malformed_files_are_named(small_dataset_root, tmp_path):
         load_dataset(copy).scene(1).view(0)
     with pytest.raises(DatasetError, match="no scene 7"):
         load_dataset(copy).scene(7)
+
+
+def test_the_bin_synth_rendered_is_recorded_and_read(small_dataset_root, tmp_path):
+    """A synth dataset records its bin (the renderer's own: floor at z = 0, centred); one
+    without it (made elsewhere, or before) has none; a malformed one is named."""
+    from posefuse.sim.scenes import SceneSpec
+
+    region = load_dataset(small_dataset_root).bin
+    spec = SceneSpec().bin
+    assert region is not None and region.size == spec.size
+    assert region.wall_height == spec.wall_height
+    np.testing.assert_array_equal(region.T_world_bin, np.eye(4))
+    # every true part's centre lies in it
+    for view in load_dataset(small_dataset_root).views():
+        centres = np.array([(view.T_world_cam @ g.T_cam_obj)[:3, 3] for g in view.gts])
+        assert np.all(region.distance_outside(centres) == 0.0)
+    copy = tmp_path / "copy"
+    shutil.copytree(small_dataset_root, copy)
+    record = json.loads((copy / "synth.json").read_text())
+    record["bin"] = {"size": [0.4, -1.0]}
+    (copy / "synth.json").write_text(json.dumps(record))
+    with pytest.raises(DatasetError, match=r"synth.json: 'bin': bin region"):
+        load_dataset(copy).bin
+    del record["bin"]
+    (copy / "synth.json").write_text(json.dumps(record))
+    assert load_dataset(copy).bin is None
+    (copy / "synth.json").unlink()
+    assert load_dataset(copy).bin is None

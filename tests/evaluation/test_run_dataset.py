@@ -329,3 +329,28 @@ def test_the_summary_gives_the_published_poses_nees_and_that_of_the_right_ones_a
     run = DatasetRun((), AssociationScore(1.0, 1.0, 4, 4), {}, {}, pose_nees={8: nees})
     assert "Of them right" not in summary_markdown(run, {1: SimpleNamespace(name="p")}, (8,))
     assert right_pose_coverage(run, 8) is None and right_pose_coverage(run, 4) is None
+
+
+def test_run_dataset_gives_the_estimator_the_bin_the_dataset_records(
+    small_dataset_root, tmp_path, monkeypatch, capsys
+):
+    """As a cell that knows its bin: the one synth recorded (its own), unless ``--bin none``."""
+    import posefuse.estimator.tracker as tracker
+    from posefuse.evaluation.dataset import load_dataset
+
+    made = []
+
+    class Recording(tracker.MultiViewEstimator):
+        def __init__(self, catalog, config=None, *args, **kwargs):
+            made.append(config)
+            super().__init__(catalog, config, *args, **kwargs)
+
+    monkeypatch.setattr(tracker, "MultiViewEstimator", Recording)
+    recorded = load_dataset(small_dataset_root).bin
+    args = ["run-dataset", "--dataset", str(small_dataset_root), "--out", str(tmp_path)]
+    for flag, used in (([], True), (["--bin", "none"], False)):
+        made.clear()
+        assert main([*args, "--translation-only", "--scenes", "0", *flag]) == 0
+        bins = [None if c.bin is None else c.bin.to_json() for c in made]
+        assert made and bins == [recorded.to_json() if used else None] * len(made)
+        assert ("bin: from the dataset" in capsys.readouterr().out) == used

@@ -49,6 +49,38 @@ def test_the_daemon_is_verified_by_default_and_can_be_told_not_to(monkeypatch):
     assert not tracker_config(Settings()).verification.enabled
 
 
+def test_the_daemon_knows_the_bin_only_when_told(monkeypatch):
+    """The nbv_bin_* settings are an example bin until POSEFUSE_BIN_KNOWN says they are the
+    cell's: then the estimator gets that bin, as the environment places it; a bin that is
+    none is refused when the settings are read, naming them."""
+    import numpy as np
+    import pytest
+
+    from posefuse.bench.daemon_accuracy import as_environment, bin_settings
+    from posefuse.estimator.core.bin_region import BinRegion
+
+    assert tracker_config(Settings()).bin is None
+    monkeypatch.setenv("POSEFUSE_BIN_KNOWN", "1")
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_CENTER", "[0.5, -0.2, 0.7]")
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_SIZE", "[0.6, 0.4]")
+    region = tracker_config(Settings()).bin
+    assert region is not None and region.size == (0.6, 0.4)
+    np.testing.assert_array_equal(region.T_world_bin[:3, 3], [0.5, -0.2, 0.7])
+    assert region.distance_outside(np.array([0.5, -0.2, 0.65])) == pytest.approx(0.05)
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_SIZE", "[0.6, 0.0]")
+    with pytest.raises(ValueError, match="nbv_bin_size.*bin region"):
+        Settings()
+    # a dataset's bin told to a daemon's process, as the accuracy bench tells it
+    T = np.eye(4)
+    T[:3, 3] = [0.1, 0.0, -0.3]
+    given = BinRegion((0.42, 0.32), 0.08, T)
+    for name, value in as_environment(bin_settings(given)).items():
+        monkeypatch.setenv(name, value)
+    told = tracker_config(Settings()).bin
+    assert told.to_json() == given.to_json()
+    assert bin_settings(None) == {}
+
+
 def test_fused_frames_leave_tracks_waiting_and_slices_check_them_oldest_first(
     scene_frames, default_banks
 ):

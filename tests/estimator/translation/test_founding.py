@@ -1,13 +1,16 @@
 """Founding tracks from two views, merging converged tracks, splitting disagreeing views."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.core.geometry import invert, make_transform
 from posefuse.estimator.frontend.detection import Detection
-from posefuse.estimator.tracker import Frame, MultiViewEstimator
+from posefuse.estimator.tracker import Frame, MultiViewEstimator, TrackerConfig
 from posefuse.estimator.translation.founding import (
     FoundingConfig,
     HeldDetection,
@@ -201,3 +204,59 @@ def test_estimator_holds_a_lone_detection_and_founds_on_the_second_view(robi_cat
     track = est.tracks[ids[1][0]]
     assert [s for s, _ in track.detections] == [1, 2, 3]
     np.testing.assert_allclose(track.estimate.t_world_obj, p, atol=1e-4)
+
+
+def test_a_pair_that_meets_under_the_bins_floor_founds_nothing():
+    """Two detections of different parts that meet below the floor are no part; inside the
+    bin, or with no bin known, the same pair founds."""
+    region = BinRegion((0.4, 0.3), 0.08)
+    Ta, Tb = _T_cam_world(-0.15), _T_cam_world(0.15)
+    for p, refused in (([0.05, -0.03, -0.06], True), ([0.05, -0.03, -0.01], False)):
+        a, b = _held(Ta, np.array(p), 1), _held(Tb, np.array(p), 2)
+        assert triangulate_pair(a, b, FoundingConfig()) is not None
+        assert (triangulate_pair(a, b, FoundingConfig(), region, 0.02) is None) == refused
+        assert (choose_pairs([a], [b], FoundingConfig(), region, 0.02) == []) == refused
+
+
+def test_the_estimator_drops_a_track_that_leaves_the_bin_and_founds_none_outside(robi_catalog):
+    """With the bin known, detections that meet under its floor stay held and found nothing
+    (without it, the same views found a track); a track whose centre has left the bin beyond a
+    wall (set there, as views of a wrong pairing would move it) is dropped at the next update
+    and reported so."""
+    cam = REALSENSE_1280x720
+    obj_id = next(iter(robi_catalog))
+    dia = robi_catalog[obj_id].diameter
+    region = BinRegion((0.4, 0.3), 0.08)
+    config = TrackerConfig(bin=region)
+
+    def detection(T_cam_world, p):
+        q = T_cam_world[:3, :3] @ p + T_cam_world[:3, 3]
+        uv = (cam.K @ (q / q[2]))[:2]
+        side = cam.K[0, 0] * dia * 0.6 / q[2]
+        return Detection(
+            obj_id, np.array([uv[0] - side / 2, uv[1] - side / 2, side, side]), uv, np.eye(2), None
+        )
+
+    under = np.array([0.02, 0.01, -config.bin_margin_frac * dia - 0.03])
+    inside = np.array([0.02, 0.01, 0.01])
+    for p, founded in ((under, False), (inside, True)):
+        est = MultiViewEstimator(robi_catalog, config)
+        unknown = MultiViewEstimator(robi_catalog)
+        for k, x in enumerate([-0.12, 0.0, 0.12]):
+            T = _T_cam_world(x)
+            est.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, p)])
+            unknown.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, p)])
+        assert bool(est.tracks) == founded
+        assert len(unknown.tracks) == 1  # without the bin, the same views found a track
+
+    # a track inside the bin, then the views say its part lies beyond a wall
+    est = MultiViewEstimator(robi_catalog, config)
+    for k, x in enumerate([-0.12, 0.0]):
+        T = _T_cam_world(x)
+        est.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, inside)])
+    (key,) = est.tracks
+    outside = np.array([0.2 + config.bin_margin_frac * dia + 0.05, 0.01, 0.01])
+    est.tracks[key].estimate = dataclasses.replace(est.tracks[key].estimate, t_world_obj=outside)
+    T = _T_cam_world(0.12)
+    est.update(Frame(3, cam, np.linalg.inv(T)), [])
+    assert key in est.last_report.dropped and not est.tracks
