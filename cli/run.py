@@ -445,7 +445,11 @@ def _cmd_quickstart(args: argparse.Namespace) -> int:
         f"front end (true centers + {ORACLE_CENTER_SIGMA:g} px noise, "
         f"{ORACLE_DROP_RATE:.0%} missed, {ORACLE_FALSE_POSITIVE_RATE:.0%} false positives)"
     )
-    report = run_and_write(dataset, make_frontend(dataset, "oracle", oracle), run_dir, "oracle")
+    # the bin synth recorded, as run-dataset gives it by default
+    config = dataclasses.replace(tracker_config(), bin=dataset.bin)
+    report = run_and_write(
+        dataset, make_frontend(dataset, "oracle", oracle), run_dir, "oracle", config=config
+    )
     shown = {n: r for n, r in report.reports.items() if n in (4, 8)}
     print(f"4/4 the estimates after 4 and 8 views against the ground truth.\n\n{DETECTION_LEGEND}")
     print(checkpoint_markdown(shown))

@@ -73,12 +73,13 @@ class TrackerConfig:
     # never waits for them; checked after every update, the estimates are the same
     deferred_verification: bool = False
     # the bin the parts lie in, where the cell knows it (world frame; None: not known). A
-    # founding pair that meets outside it, and a track whose centre leaves it, by more than
-    # ``bin_margin_frac`` of the part's diameter, is no part: in a pile, detections of
-    # different parts meet under the floor (estimator/core/bin_region.py)
+    # confirmed track whose centre lies outside it by more than ``bin_margin_frac`` of the
+    # part's diameter is published tentative: in a pile, detections of different parts meet
+    # under the floor (estimator/core/bin_region.py). The track itself lives on as before:
+    # refusing such foundings, or dropping such tracks, freed detections that founded other
+    # wrong tracks and lost parts held out (docs/lab/2026-12-08-bin-floor-ghosts.md)
     bin: BinRegion | None = None
-    # chosen on the tuning piles (robi 4343, 4444) from 0.1, 0.25 and 0.5
-    # (docs/lab/2026-12-08-bin-floor-ghosts.md)
+    # an estimate right to 0.1 d of a centre inside the bin lies at most 0.1 d outside it
     bin_margin_frac: float = 0.25
 
     def __post_init__(self) -> None:

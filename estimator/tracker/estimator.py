@@ -220,7 +220,7 @@ class MultiViewEstimator:
             for oid in touched:
                 self.poses.measure_rotations(self.tracks[oid], view.view_serial)
 
-        dropped = [a for a, _ in merged] + self.book.drop_missed() + self.book.drop_outside()
+        dropped = [a for a, _ in merged] + self.book.drop_missed()
         self.last_report = UpdateReport(
             tuple(changes.assigned),
             tuple(changes.started),
@@ -492,7 +492,7 @@ class MultiViewEstimator:
         if unnamed:  # the box of "a part" bounds its depth only as loosely as the sizes differ
             spread = size_spread(self._sizes())
             founding = replace(founding, box_depth_factor=founding.box_depth_factor * spread)
-        pairs = choose_pairs(pool, new, founding, self.config.bin, self._bin_margin(obj_id))
+        pairs = choose_pairs(pool, new, founding)
         named = pairs
         if unnamed:  # "a part": named as founded (estimator.tracker.naming)
             matchers = {c: self.matcher(c) for c in sorted(self.catalog)}
@@ -521,18 +521,25 @@ class MultiViewEstimator:
         pool = self.book.absorb_held(pool, [self.tracks[o] for _, o in changes.started], scale)
         self.book.keep_held(obj_id, pool)
 
-    def _bin_margin(self, obj_id: int) -> float:
-        """How far (metres) a centre of class ``obj_id`` may lie outside the bin:
-        ``bin_margin_frac`` of its diameter ("a part": of the largest part's)."""
-        return self.config.bin_margin_frac * self.book.diameter_of(obj_id)
-
     def _estimate(self, track: Track, stamp: int) -> ObjectEstimate:
         unasked = None
         if track.verdict is not None:
             self.poses.model_edges(track.obj_id)  # made by the verification (or a restore)
             unasked = self.poses.unasked[track.obj_id]
+        allowance = None
+        if self.config.bin is not None:  # how far outside the bin its centre may lie, metres
+            if track.obj_id in self.catalog:
+                diameter = self.catalog[track.obj_id].diameter
+            else:  # "a part" not named yet: the largest part's
+                diameter = max(m.diameter for m in self.catalog.values())
+            allowance = (self.config.bin, self.config.bin_margin_frac * diameter)
         return published_estimate(
-            track, stamp, self.catalog[track.obj_id].name, self.config.verification, unasked
+            track,
+            stamp,
+            self.catalog[track.obj_id].name,
+            self.config.verification,
+            unasked,
+            allowance,
         )
 
     def _box_depth(self, det: Detection, K: np.ndarray) -> float:

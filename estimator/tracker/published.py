@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.core.geometry import so3_log
 from posefuse.estimator.tracker.tracks import CONFIRMED, TENTATIVE, Track
 from posefuse.estimator.verification.verify import VerificationConfig, alternative_turns
@@ -95,6 +96,7 @@ def published_estimate(
     class_name: str,
     verification: VerificationConfig | None = None,
     unasked: np.ndarray | None = None,
+    bin_allowance: tuple[BinRegion, float] | None = None,
 ) -> ObjectEstimate:
     """What the track publishes at ``stamp_ns`` (see the module docstring); ``verification``
     gives the odds from which a turn is published as an alternative (default: the default
@@ -102,7 +104,10 @@ def published_estimate(
     not ask the views about (``PoseStage.unasked``: a gear's teeth): where the track's turn
     judgement (``Track.turns``, :mod:`estimator.verification.turns`) says which of them the
     views show, the pose is turned to it and the others are published with their odds; without
-    one, each is published with odds 1, since nothing rules it out."""
+    one, each is published with odds 1, since nothing rules it out. ``bin_allowance``: the bin
+    the parts lie in, where the cell knows it, and how far (metres) a centre may lie outside it
+    (``TrackerConfig.bin``, ``bin_margin_frac`` of the part's diameter); a confirmed track
+    whose published centre lies farther out is published tentative, as no part is there."""
     verification = verification or VerificationConfig()
     T = np.eye(4)
     T[:3, 3] = track.estimate.t_world_obj
@@ -170,6 +175,12 @@ def published_estimate(
     ):
         # no pose of the part fits what its views show there: not a part to reach for
         status = TENTATIVE
+    if status == CONFIRMED and bin_allowance is not None:
+        region, margin = bin_allowance
+        if float(region.distance_outside(T[:3, 3])) > margin:
+            # under the bin's floor (detections of different parts that meet there) or beyond
+            # a wall: no part lies there
+            status = TENTATIVE
     return ObjectEstimate(
         stamp_ns=stamp_ns,
         object_id=track.object_id,

@@ -396,30 +396,6 @@ class TrackBook:
                 del self.tracks[key]
         return dropped
 
-    def drop_outside(self) -> list[str]:
-        """Drop the tracks whose centre lies outside the bin the parts lie in
-        (``TrackerConfig.bin``; none when it is not known) by more than ``bin_margin_frac`` of
-        their part's diameter: no part is there; returns their object ids."""
-        region = self.config.bin
-        if region is None or not self.tracks:
-            return []
-        keys = list(self.tracks)
-        centres = np.array([self.tracks[k].estimate.t_world_obj for k in keys])
-        outside = region.distance_outside(centres)
-        dropped = []
-        for key, distance in zip(keys, outside, strict=True):
-            track = self.tracks[key]
-            if distance > self.config.bin_margin_frac * self.diameter_of(track.obj_id):
-                dropped.append(key)
-                del self.tracks[key]
-        return dropped
-
-    def diameter_of(self, obj_id: int) -> float:
-        """The part's diameter; "a part" (not in the catalog) takes the largest part's."""
-        if obj_id in self.catalog:
-            return self.catalog[obj_id].diameter
-        return max(m.diameter for m in self.catalog.values())
-
     def keep_held(self, obj_id: int, pool: list[HeldDetection]) -> None:
         """The class's held detections from now on, those older than ``founding.hold_views``
         views forgotten."""

@@ -11,10 +11,7 @@ are triangulated (:func:`triangulate_pair`), and a pair founds a track when
   ``pair_gate_chi2`` of the centers' covariances;
 - the point lies in front of both cameras, with at least ``min_parallax_deg`` between the rays;
 - neither box contradicts the triangulated depth by more than ``box_depth_factor`` (a loose
-  check: it separates parts of one class that lie on one epipolar line, but never sets a depth);
-- where the cell knows the bin the parts lie in (:class:`~estimator.core.bin_region.BinRegion`),
-  the point lies in it, within ``margin``: two detections of different parts that meet under
-  the bin's floor are no part, and stay held for a partner of their own.
+  check: it separates parts of one class that lie on one epipolar line, but never sets a depth).
 
 Triangulating every (held, new) pair was the estimator's largest cost in a pile (30 parts of
 a few classes: a hundred pairs a view, 106 of 205 ms a frame in ``python -m
@@ -37,7 +34,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from posefuse.estimator.core.bin_region import BinRegion
 from posefuse.estimator.translation.gaussian import (
     MIN_DEPTH,
     CenterObservations,
@@ -196,25 +192,10 @@ def pair_residual_lower_bounds(
 
 
 def triangulate_pair(
-    a: HeldDetection,
-    b: HeldDetection,
-    config: FoundingConfig,
-    region: BinRegion | None = None,
-    margin: float = 0.0,
-) -> FoundingPair | None:
-    """The founding pair of two detections of one class from different views, or None when
-    gated out (see the module docstring); ``region``: the bin the parts lie in (None: not
-    known), a point outside it by more than ``margin`` metres gated out."""
-    pair = _triangulate_pair(a, b, config)
-    if pair is not None and region is not None:
-        if float(region.distance_outside(pair.prior_mean)) > margin:
-            return None
-    return pair
-
-
-def _triangulate_pair(
     a: HeldDetection, b: HeldDetection, config: FoundingConfig
 ) -> FoundingPair | None:
+    """The founding pair of two detections of one class from different views, or None when
+    gated out (see the module docstring)."""
     ca, da = _ray(a)
     cb, db = _ray(b)
     parallax = np.degrees(np.arccos(np.clip(da @ db, -1.0, 1.0)))
@@ -256,14 +237,10 @@ def _triangulate_pair(
 
 
 def choose_pairs(
-    held: list[HeldDetection],
-    new: list[HeldDetection],
-    config: FoundingConfig,
-    region: BinRegion | None = None,
-    margin: float = 0.0,
+    held: list[HeldDetection], new: list[HeldDetection], config: FoundingConfig
 ) -> list[FoundingPair]:
     """Pairs (older held, new) of one class chosen jointly by minimum total cost; each detection
-    in at most one pair. ``region`` and ``margin``: as :func:`triangulate_pair` takes them."""
+    in at most one pair."""
     if not held or not new:
         return []
     pairs: dict[tuple[int, int], FoundingPair] = {}
@@ -275,7 +252,7 @@ def choose_pairs(
                 continue
             if bounds[i, j] > config.pair_gate_chi2:
                 continue  # would fail the residual gate or the box check
-            pair = triangulate_pair(a, b, config, region, margin)
+            pair = triangulate_pair(a, b, config)
             if pair is not None:
                 pairs[(i, j)] = pair
                 cost[i, j] = pair.cost

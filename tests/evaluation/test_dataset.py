@@ -79,7 +79,7 @@ def test_the_bin_synth_rendered_is_recorded_and_read(small_dataset_root, tmp_pat
     record["bin"] = {"size": [0.4, -1.0]}
     (copy / "synth.json").write_text(json.dumps(record))
     with pytest.raises(DatasetError, match=r"synth.json: 'bin': bin region"):
-        load_dataset(copy).bin
+        _ = load_dataset(copy).bin
     del record["bin"]
     (copy / "synth.json").write_text(json.dumps(record))
     assert load_dataset(copy).bin is None

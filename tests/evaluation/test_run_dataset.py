@@ -53,6 +53,12 @@ def test_run_dataset_writes_errors_at_2_4_and_8_views(eight_view_root, tmp_path,
     shown = ", ".join(f"{n}: {np.mean(v):.2f} / {np.median(v):.2f}" for n, v in nees.items())
     assert "By the views fused, mean / median" in text and shown in text, shown
     assert len(by_views[8]) >= 4  # most parts of the bin are scored at 8 views
+    # each row says how its track was published; the summary gives the confirmed ones apart
+    assert {r["published"] for r in rows if int(r["n_views"]) > 1} <= {"confirmed", "tentative"}
+    final = [
+        float(r["nees"]) for r in rows if r["n_views"] == "8" and r["published"] == "confirmed"
+    ]
+    assert f"Of them the {len(final)} of {len(by_views[8])} published confirmed" in text
 
 
 def test_run_dataset_refuses_bad_settings(small_dataset_root, tmp_path, capsys):

@@ -1,7 +1,5 @@
 """Founding tracks from two views, merging converged tracks, splitting disagreeing views."""
 
-import dataclasses
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -206,57 +204,38 @@ def test_estimator_holds_a_lone_detection_and_founds_on_the_second_view(robi_cat
     np.testing.assert_allclose(track.estimate.t_world_obj, p, atol=1e-4)
 
 
-def test_a_pair_that_meets_under_the_bins_floor_founds_nothing():
-    """Two detections of different parts that meet below the floor are no part; inside the
-    bin, or with no bin known, the same pair founds."""
-    region = BinRegion((0.4, 0.3), 0.08)
-    Ta, Tb = _T_cam_world(-0.15), _T_cam_world(0.15)
-    for p, refused in (([0.05, -0.03, -0.06], True), ([0.05, -0.03, -0.01], False)):
-        a, b = _held(Ta, np.array(p), 1), _held(Tb, np.array(p), 2)
-        assert triangulate_pair(a, b, FoundingConfig()) is not None
-        assert (triangulate_pair(a, b, FoundingConfig(), region, 0.02) is None) == refused
-        assert (choose_pairs([a], [b], FoundingConfig(), region, 0.02) == []) == refused
-
-
-def test_the_estimator_drops_a_track_that_leaves_the_bin_and_founds_none_outside(robi_catalog):
-    """With the bin known, detections that meet under its floor stay held and found nothing
-    (without it, the same views found a track); a track whose centre has left the bin beyond a
-    wall (set there, as views of a wrong pairing would move it) is dropped at the next update
-    and reported so."""
+def test_a_track_under_the_bins_floor_is_published_tentative(robi_catalog):
+    """Where the cell knows its bin, a track whose centre lies under its floor (detections of
+    different parts that met there) is published tentative; the same views inside the bin, or
+    without the bin, publish it confirmed. The tracks themselves are the same either way."""
     cam = REALSENSE_1280x720
     obj_id = next(iter(robi_catalog))
     dia = robi_catalog[obj_id].diameter
-    region = BinRegion((0.4, 0.3), 0.08)
-    config = TrackerConfig(bin=region)
+    config = TrackerConfig(bin=BinRegion((0.4, 0.3), 0.08))
+    margin = config.bin_margin_frac * dia
 
     def detection(T_cam_world, p):
         q = T_cam_world[:3, :3] @ p + T_cam_world[:3, 3]
         uv = (cam.K @ (q / q[2]))[:2]
         side = cam.K[0, 0] * dia * 0.6 / q[2]
-        return Detection(
-            obj_id, np.array([uv[0] - side / 2, uv[1] - side / 2, side, side]), uv, np.eye(2), None
-        )
+        box = np.array([uv[0] - side / 2, uv[1] - side / 2, side, side])
+        return Detection(obj_id, box, uv, np.eye(2), None)
 
-    under = np.array([0.02, 0.01, -config.bin_margin_frac * dia - 0.03])
-    inside = np.array([0.02, 0.01, 0.01])
-    for p, founded in ((under, False), (inside, True)):
+    def published(p, config):
         est = MultiViewEstimator(robi_catalog, config)
-        unknown = MultiViewEstimator(robi_catalog)
         for k, x in enumerate([-0.12, 0.0, 0.12]):
             T = _T_cam_world(x)
             est.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, p)])
-            unknown.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, p)])
-        assert bool(est.tracks) == founded
-        assert len(unknown.tracks) == 1  # without the bin, the same views found a track
+        (estimate,) = est.estimates(include_tentative=True)
+        (track,) = est.tracks.values()
+        np.testing.assert_allclose(estimate.t_world_obj, p, atol=1e-4)
+        return estimate.status, track.status
 
-    # a track inside the bin, then the views say its part lies beyond a wall
-    est = MultiViewEstimator(robi_catalog, config)
-    for k, x in enumerate([-0.12, 0.0]):
-        T = _T_cam_world(x)
-        est.update(Frame(k + 1, cam, np.linalg.inv(T)), [detection(T, inside)])
-    (key,) = est.tracks
-    outside = np.array([0.2 + config.bin_margin_frac * dia + 0.05, 0.01, 0.01])
-    est.tracks[key].estimate = dataclasses.replace(est.tracks[key].estimate, t_world_obj=outside)
-    T = _T_cam_world(0.12)
-    est.update(Frame(3, cam, np.linalg.inv(T)), [])
-    assert key in est.last_report.dropped and not est.tracks
+    under = np.array([0.02, 0.01, -margin - 0.01])
+    barely = np.array([0.02, 0.01, -margin + 0.01])  # within the allowance
+    beyond_wall = np.array([0.2 + margin + 0.01, 0.01, 0.02])
+    for p in (under, beyond_wall):
+        assert published(p, config) == ("tentative", "confirmed")
+        assert published(p, TrackerConfig()) == ("confirmed", "confirmed")
+    assert published(barely, config) == ("confirmed", "confirmed")
+    assert published(np.array([0.02, 0.01, 0.3]), config) == ("confirmed", "confirmed")  # open top
