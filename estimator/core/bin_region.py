@@ -5,9 +5,9 @@ calibrated like the cameras'. Where it is known, a part's centre cannot lie outs
 of all under its floor. In a pile of one part type, two detections of different parts (or of
 none) can meet in 3D far from any part: on the tuning piles a third of the tracks more than
 0.3 d off their part lay under the bin's floor, up to half a metre under it, and none of the
-right ones (docs/lab/2026-12-08-bin-floor-ghosts.md). The tracker refuses such a founding and
-drops such a track (:class:`~estimator.tracker.config.TrackerConfig`'s ``bin``); next-best-view
-uses the same region for the walls a line of sight must clear.
+right ones (docs/lab/2026-12-08-bin-floor-ghosts.md). Such a track is published tentative
+(:class:`~estimator.tracker.config.TrackerConfig`'s ``bin``); next-best-view uses the same
+region for the walls a line of sight must clear.
 
 Frames: ``T_world_bin`` (4, 4) puts the bin's inner floor centre at its origin, z up out of
 the bin; the inner floor spans ``size`` (x, y) metres, the walls rise ``wall_height`` above it.
