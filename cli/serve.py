@@ -79,6 +79,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         f"HTTP on http://{settings.http_host}:{settings.http_port} (/objects, /stats, /docs)",
         flush=True,
     )
+    if settings.bin_known:
+        width, depth = settings.nbv_bin_size
+        x, y, z = settings.nbv_bin_center
+        print(
+            f"posefuse: the bin is known ({width:g} x {depth:g} m, its floor's centre at "
+            f"({x:g}, {y:g}, {z:g}) m in the world frame): a track outside it is published "
+            "tentative",
+            flush=True,
+        )
     server = _server(
         uvicorn.Config(
             create_cells_app(cells),

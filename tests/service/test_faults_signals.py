@@ -22,9 +22,10 @@ def _header(state_dir) -> dict:
         return json.loads(f.readline())
 
 
-def _feed_and_stop(daemon, messages, sig) -> None:
+def _feed_and_stop(daemon, messages, sig) -> str:
     """Publish the scene, send ``sig`` once its last frame left the synchroniser (it is in the
-    front end or the estimator, or done), and wait for the process to exit."""
+    front end or the estimator, or done), and wait for the process to exit; returns what it
+    printed."""
     n_images = sum(m[1].endswith("/image") for m in messages)
     with zenoh_peer(daemon.endpoint) as session:
         time.sleep(0.5)
@@ -46,6 +47,7 @@ def _feed_and_stop(daemon, messages, sig) -> None:
     out = daemon.proc.stdout.read()
     assert rc == 0, out
     assert f"stopped by {signal.Signals(sig).name}" in out
+    return out
 
 
 def test_sigterm_and_sigint_finish_the_frame_write_the_snapshot_and_exit_0(
@@ -58,7 +60,8 @@ def test_sigterm_and_sigint_finish_the_frame_write_the_snapshot_and_exit_0(
     last_stamp = t0 + (sum(m[1].endswith("/image") for m in messages) - 1) * period
     daemon = ServeProcess(*args, env=ENV)
     try:
-        _feed_and_stop(daemon, messages, signal.SIGTERM)
+        out = _feed_and_stop(daemon, messages, signal.SIGTERM)
+        assert "the bin is known" not in out  # the example bin is no cell's until it is said
         header = _header(state_dir)
         assert header["objects"] >= 1
         assert header["last_stamp_ns"] == last_stamp  # the frame in flight was fused
@@ -72,8 +75,11 @@ def test_sigterm_and_sigint_finish_the_frame_write_the_snapshot_and_exit_0(
         header = _header(state_dir)
         assert header["objects"] >= n_objects
 
-        daemon = ServeProcess(*args, env=ENV)
+        daemon = ServeProcess(*args, env={**ENV, "POSEFUSE_BIN_KNOWN": "1"})
         assert daemon.stats()["restored_objects"] == header["objects"]
         assert len(daemon.objects()) == header["objects"]
+        daemon.stop()
+        out = daemon.proc.stdout.read()
+        assert "the bin is known (0.42 x 0.32 m, its floor's centre at (0, 0, 0) m" in out, out
     finally:
         daemon.stop()
