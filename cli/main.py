@@ -13,13 +13,13 @@ import os
 import sys
 from importlib.metadata import entry_points
 
-from posefuse.cli import active, data, onboard, record, run, serve, train
+from posefuse.cli import active, data, onboard, quickstart, record, run, serve, train
 from posefuse.cli.common import HelpFormatter
 from posefuse.estimator.core.errors import PosefuseError
 
 ENTRY_POINT_GROUP = "posefuse.commands"
 # The built-in groups, in the order of `posefuse --help`: append a module to add a group.
-BUILTIN_GROUPS = (data, onboard, run, active, train, serve, record)
+BUILTIN_GROUPS = (data, onboard, run, quickstart, active, train, serve, record)
 
 
 def _register_plugins(sub) -> None:

@@ -1,11 +1,10 @@
-"""Running the estimator offline: over BOP datasets, its template banks, the learned front end,
-and the quickstart that shows all of it on one small bin.
+"""Running the estimator offline: over BOP datasets, its template banks, the learned front end
+(the quickstart that shows all of it on one small bin is ``cli/quickstart.py``).
 
 - ``posefuse run-dataset``: the estimator over a BOP dataset, views one at a time, scored
 - ``posefuse templates``: build (or load) the LINE-2D template banks of a catalog
 - ``posefuse eval-frontend``: recall, precision and center accuracy of the learned front end
 - ``posefuse frontend-overlay``: a picture of the learned front end's output on one view
-- ``posefuse quickstart``: render a bin, run the estimator on it and score it
 """
 
 from __future__ import annotations
@@ -13,13 +12,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from posefuse.cli.common import RUNS, add_command, add_parts_arg
+from posefuse.cli.common import add_command, add_parts_arg
 from posefuse.estimator.core.errors import PosefuseError
 from posefuse.evaluation.oracle import OracleConfig, OracleFrontend
 from posefuse.service.resources import DEFAULT_CATALOG, DEFAULT_MODEL
@@ -414,55 +412,6 @@ def _cmd_frontend_overlay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_quickstart(args: argparse.Namespace) -> int:
-    # lazy: the catalog, renderer and scoring load trimesh, scipy and cv2 (~0.6 s)
-    from posefuse.estimator.core.objects import load_catalog
-    from posefuse.evaluation.dataset import load_dataset
-    from posefuse.evaluation.scores import checkpoint_markdown
-    from posefuse.sim.overlay import write_gt_overlay
-    from posefuse.sim.scenes import SceneSpec
-    from posefuse.sim.synth import SynthConfig, generate_dataset
-
-    out = Path(args.out)
-    catalog = load_catalog(args.catalog)
-    print(f"1/4 rendering 1 bin scene x 8 views of {len(catalog)} parts into {out}")
-    generate_dataset(
-        catalog, out, SynthConfig(n_scenes=1, seed=args.seed, scene=SceneSpec(n_views=8))
-    )
-    dataset = load_dataset(out)
-    overlay = out / "overlay_000000_000000.png"
-    write_gt_overlay(dataset, 0, 0, overlay)
-    print(f"2/4 ground-truth overlay of the first view: {overlay}")
-    run_dir = out / "run"
-    oracle = OracleConfig(
-        center_sigma_px=ORACLE_CENTER_SIGMA,
-        drop_rate=ORACLE_DROP_RATE,
-        false_positive_rate=ORACLE_FALSE_POSITIVE_RATE,
-        seed=args.seed,
-    )
-    print(
-        f"3/4 running the estimator over the views one at a time into {run_dir}, on the oracle "
-        f"front end (true centers + {ORACLE_CENTER_SIGMA:g} px noise, "
-        f"{ORACLE_DROP_RATE:.0%} missed, {ORACLE_FALSE_POSITIVE_RATE:.0%} false positives)"
-    )
-    # the bin synth recorded, as run-dataset gives it by default
-    config = dataclasses.replace(tracker_config(), bin=dataset.bin)
-    report = run_and_write(
-        dataset, make_frontend(dataset, "oracle", oracle), run_dir, "oracle", config=config
-    )
-    shown = {n: r for n, r in report.reports.items() if n in (4, 8)}
-    print(f"4/4 the estimates after 4 and 8 views against the ground truth.\n\n{DETECTION_LEGEND}")
-    print(checkpoint_markdown(shown))
-    print(f"(all tables, 2 views too and the fate of every part, in {run_dir})\n")
-    where = shlex.quote(str(out))
-    print(
-        f"next: posefuse run-dataset --dataset {where} --frontend network "
-        f"--out {shlex.quote(str(out / 'run_net'))}  (the learned front end)"
-    )
-    print("      posefuse demo  (the daemon on Zenoh, replaying the demo recording)")
-    return 0
-
-
 def register(subparsers) -> None:
     p = add_command(
         subparsers,
@@ -594,20 +543,3 @@ def register(subparsers) -> None:
     )
     p.add_argument("--out", required=True, help="image file to write (PNG)")
     p.set_defaults(func=_cmd_frontend_overlay)
-
-    p = add_command(
-        subparsers,
-        "quickstart",
-        "render a small bin, run the estimator on it and score it",
-        "Renders 1 bin scene x 8 views, draws the ground truth of the first view, runs the "
-        "estimator over the views (oracle detections, as run-dataset) into OUT/run and prints "
-        "its ADD-sym and MSSD after 4 and 8 views.",
-    )
-    p.add_argument("--catalog", default=DEFAULT_CATALOG, help="BOP catalog folder")
-    p.add_argument(
-        "--out",
-        default=f"{RUNS}/quickstart",
-        help="folder for the dataset and the run, relative to the current folder",
-    )
-    p.add_argument("--seed", type=int, default=0, help="seed of the scene and of the detections")
-    p.set_defaults(func=_cmd_quickstart)
