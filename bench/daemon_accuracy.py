@@ -33,6 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from posefuse.bench.service_latency import _get, peer_config, start_daemon
 from posefuse.bench.service_targets import _reset
+from posefuse.estimator.core.errors import PosefuseError
 
 CELL = "bench"
 CHECKPOINTS = (4, 8)
@@ -250,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     targets = {n: [(s, dataset.scene(s).im_ids[n - 1]) for s in scene_ids] for n in CHECKPOINTS}
     try:
         settings = bin_settings(dataset.bin if args.bin == "dataset" else None)
-    except ValueError as exc:
+    except (ValueError, PosefuseError) as exc:
         parser.error(f"--bin dataset: {exc}")
     got = {"offline": offline(dataset, scene_ids, stamps, args.check_every, settings)}
     drain = {}

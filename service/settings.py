@@ -111,10 +111,11 @@ class Settings(BaseSettings):
     nbv_bin_size: tuple[float, float] = (0.42, 0.32)
     nbv_bin_wall_height: float = 0.08
     nbv_distances: tuple[float, ...] = (0.55, 0.75)
-    # the nbv_bin_* settings are where the cell's bin really stands: the estimator then founds
-    # no track, and keeps none, whose centre lies outside it (under its floor: detections of
-    # different parts that meet there; estimator/core/bin_region.py). Off by default: the
-    # defaults above are an example bin, not yours
+    # the nbv_bin_* settings are where the cell's bin really stands: a confirmed track whose
+    # centre lies outside it by more than a quarter of its part's diameter is then published
+    # tentative (under its floor: detections of different parts that meet there;
+    # estimator/core/bin_region.py). Off by default: the defaults above are an example bin,
+    # not yours
     bin_known: bool = Field(
         False, description="the nbv_bin_* settings give the real bin: no part lies outside it"
     )
@@ -162,10 +163,14 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _bin(self):
+        import math
+
+        if not all(math.isfinite(c) for c in self.nbv_bin_center):
+            raise ValueError(f"nbv_bin_center must be finite, got {self.nbv_bin_center}")
         try:
             self.bin_region()
         except ValueError as exc:
-            raise ValueError(f"nbv_bin_center, nbv_bin_size, nbv_bin_wall_height: {exc}") from None
+            raise ValueError(f"nbv_bin_size, nbv_bin_wall_height: {exc}") from None
         return self
 
     @classmethod

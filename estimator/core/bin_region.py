@@ -35,10 +35,11 @@ class BinRegion:
 
     def __post_init__(self) -> None:
         size = tuple(float(s) for s in self.size)
+        wall_height = float(self.wall_height)
         if (
             len(size) != 2
             or not all(math.isfinite(s) and s > 0 for s in size)
-            or not (math.isfinite(self.wall_height) and self.wall_height >= 0)
+            or not (math.isfinite(wall_height) and wall_height >= 0)
         ):
             raise ValueError(
                 f"bin region: size must be two positive widths and wall_height at least 0, "
@@ -53,6 +54,7 @@ class BinRegion:
         if not np.allclose(T[3], [0, 0, 0, 1]):
             raise ValueError("bin region: T_world_bin's last row must be 0 0 0 1")
         object.__setattr__(self, "size", size)
+        object.__setattr__(self, "wall_height", wall_height)
         object.__setattr__(self, "T_world_bin", T)
 
     def distance_outside(self, p_world: np.ndarray) -> np.ndarray:
@@ -90,16 +92,20 @@ class BinRegion:
                 f"a bin region is an object with size, wall_height and T_world_bin, "
                 f"got {type(value).__name__}"
             )
-        unknown = set(value) - {"size", "wall_height", "T_world_bin"}
-        if unknown or "size" not in value:
+        unknown = sorted(set(value) - {"size", "wall_height", "T_world_bin"})
+        if unknown:
             raise ValueError(
-                f"a bin region needs 'size' and may have 'wall_height' and 'T_world_bin'; "
-                f"got {sorted(value)}"
+                f"a bin region has no {unknown}: it has size, wall_height and T_world_bin"
+            )
+        missing = [k for k in ("size", "wall_height") if k not in value]
+        if missing:
+            raise ValueError(
+                f"a bin region needs {missing} (T_world_bin: the identity if left out)"
             )
         try:
             return cls(
                 tuple(value["size"]),
-                float(value.get("wall_height", 0.0)),
+                value["wall_height"],
                 np.array(value.get("T_world_bin", np.eye(4)), float),
             )
         except (TypeError, ValueError) as exc:

@@ -528,11 +528,8 @@ class MultiViewEstimator:
             unasked = self.poses.unasked[track.obj_id]
         allowance = None
         if self.config.bin is not None:  # how far outside the bin its centre may lie, metres
-            if track.obj_id in self.catalog:
-                diameter = self.catalog[track.obj_id].diameter
-            else:  # "a part" not named yet: the largest part's
-                diameter = max(m.diameter for m in self.catalog.values())
-            allowance = (self.config.bin, self.config.bin_margin_frac * diameter)
+            margin = self.config.bin_margin_frac * self.catalog[track.obj_id].diameter
+            allowance = (self.config.bin, margin)
         return published_estimate(
             track,
             stamp,

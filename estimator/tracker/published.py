@@ -11,7 +11,9 @@ published as ambiguous: the turns beside it with their odds, and its rotation co
 to cover each of them. A confirmed track whose verified pose fits its kept views worse than
 ``VerificationConfig.max_fit`` (``Track.fit``) is published as tentative: no pose of the part
 fits what the views show there, so it is no part to reach for (a track founded between parts,
-or holding two parts' centres).
+or holding two parts' centres). So is a confirmed track whose centre lies outside the bin the
+parts lie in, where the cell knows it (``TrackerConfig.bin``), by more than its allowance: in
+a pile, detections of different parts meet under the floor.
 """
 
 from __future__ import annotations

@@ -68,8 +68,13 @@ def test_the_daemon_knows_the_bin_only_when_told(monkeypatch):
     np.testing.assert_array_equal(region.T_world_bin[:3, 3], [0.5, -0.2, 0.7])
     assert region.distance_outside(np.array([0.5, -0.2, 0.65])) == pytest.approx(0.05)
     monkeypatch.setenv("POSEFUSE_NBV_BIN_SIZE", "[0.6, 0.0]")
-    with pytest.raises(ValueError, match="nbv_bin_size.*bin region"):
+    with pytest.raises(ValueError, match=r"nbv_bin_size.*got size \(0.6, 0.0\)"):
         Settings()
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_SIZE", "[0.6, 0.4]")
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_CENTER", "[0.5, Infinity, 0.7]")
+    with pytest.raises(ValueError, match="nbv_bin_center must be finite"):
+        Settings()
+    monkeypatch.setenv("POSEFUSE_NBV_BIN_CENTER", "[0.5, -0.2, 0.7]")
     # a dataset's bin told to a daemon's process, as the accuracy bench tells it
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.0, -0.3]

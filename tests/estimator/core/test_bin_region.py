@@ -60,11 +60,14 @@ def test_json_round_trip_and_its_errors():
     back = BinRegion.from_json(region.to_json())
     assert back.size == region.size and back.wall_height == region.wall_height
     np.testing.assert_array_equal(back.T_world_bin, region.T_world_bin)
-    with pytest.raises(ValueError, match="needs 'size'"):
+    with pytest.raises(ValueError, match=r"needs \['size'\]"):
         BinRegion.from_json({"wall_height": 0.1})
-    with pytest.raises(ValueError, match="needs 'size'"):
+    with pytest.raises(ValueError, match=r"has no \['height'\]"):
         BinRegion.from_json({"size": [0.4, 0.3], "height": 0.1})
+    identity = BinRegion.from_json({"size": [0.4, 0.3], "wall_height": 0.05})
+    np.testing.assert_array_equal(identity.T_world_bin, np.eye(4))
+    assert isinstance(BinRegion((0.4, 0.3), np.float32(0.08)).wall_height, float)
     with pytest.raises(ValueError, match="is an object"):
         BinRegion.from_json([0.4, 0.3])
     with pytest.raises(ValueError, match="bin region"):
-        BinRegion.from_json({"size": [0.4, -0.3]})
+        BinRegion.from_json({"size": [0.4, -0.3], "wall_height": 0.1})
