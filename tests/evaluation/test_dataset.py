@@ -76,7 +76,7 @@ def test_the_bin_synth_rendered_is_recorded_and_read(small_dataset_root, tmp_pat
     copy = tmp_path / "copy"
     shutil.copytree(small_dataset_root, copy)
     record = json.loads((copy / "synth.json").read_text())
-    record["bin"] = {"size": [0.4, -1.0]}
+    record["bin"] = {"size": [0.4, -1.0], "wall_height": 0.08}
     (copy / "synth.json").write_text(json.dumps(record))
     with pytest.raises(DatasetError, match=r"synth.json: 'bin': bin region"):
         _ = load_dataset(copy).bin
