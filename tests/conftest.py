@@ -18,27 +18,18 @@ from posefuse.sim.synth import SynthConfig, generate_dataset
 os.environ["POSEFUSE_CACHE"] = tempfile.mkdtemp(prefix="posefuse-test-cache-")
 atexit.register(shutil.rmtree, os.environ["POSEFUSE_CACHE"], ignore_errors=True)
 
-# the longest tests start first, longest first: the two workers then end together, instead of
-# one running a long test alone after the other is done (the suite ran 15:03 with them in their
-# places on the 2-core machine; 14:50 to 15:10 with only the first two listed)
+# the longest tests that need no shared fixture start first: the two workers then end
+# together, instead of one running them alone after the other is done (the suite ran 15:03 with
+# them in their places on the 2-core machine)
 LONGEST_FIRST = (
     "tests/sim/test_onboard.py::test_onboard_then_serve_the_part_set",
     "tests/estimator/core/test_objects_catalog.py::test_committed_catalog_is_what_the_generator_writes",
-    "tests/sim/test_active.py::test_nbv_second_view_finds_more_parts_than_random_or_the_sweep",
-    "tests/bench/test_bench.py::test_bench_quick_writes_both_tables_with_every_method",
-    "tests/test_wheel.py::test_the_installed_wheel_helps_replays_and_serves_outside_the_checkout",
-    "tests/service/test_demo_replay.py::test_offline_replay_matches_the_expected_file_and_is_repeatable",
-    "tests/service/test_scale_out.py::test_two_daemons_share_two_cells_and_one_takes_over_when_the_other_dies",
-    "tests/service/test_faults_signals.py::test_sigterm_and_sigint_finish_the_frame_write_the_snapshot_and_exit_0",
-    "tests/bench/test_real.py::test_a_part_sets_network_is_scored_as_a_front_end_on_both",
-    "tests/sim/test_onboard.py::test_no_fine_tune_finds_a_part_and_the_templates_name_it",
 )
 
 
 def pytest_collection_modifyitems(config, items):
-    rank = {nodeid: k for k, nodeid in enumerate(LONGEST_FIRST)}
-    first = sorted((item for item in items if item.nodeid in rank), key=lambda i: rank[i.nodeid])
-    items[:] = first + [item for item in items if item.nodeid not in rank]
+    first = [item for item in items if item.nodeid in LONGEST_FIRST]
+    items[:] = first + [item for item in items if item.nodeid not in LONGEST_FIRST]
 
 
 SMALL_CAMERA = Camera(np.array([[462.0, 0, 320.0], [0, 462.0, 180.0], [0, 0, 1]]), 640, 360)
